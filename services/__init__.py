@@ -1,0 +1,1 @@
+"""n3dmap services: everything that talks to the outside (CLI, Ray jobs, inference, streaming)."""
