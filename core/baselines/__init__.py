@@ -1,0 +1,1 @@
+"""Geometric baselines the learned modules are compared against (no weights)."""
