@@ -1,0 +1,46 @@
+"""3D cross-correlation cost volume: the matching score of every voxel against nearby displaced voxels.
+
+Conventions (DESIGN.md §2): volumes are B×C×Z×Y×X; displacements are (x, y, z) in voxels.
+
+cost[b, d, z, y, x] = Σ_c f0[b, c, z, y, x] · f1[b, c, z + dz, y + dy, x + dx] / C_norm
+for every displacement d = (dx, dy, dz) with |dx| ≤ rx, |dy| ≤ ry, |dz| ≤ rz; f1 is zero outside the
+volume. C_norm = 1 (`normalize=False`, the plain dot product: cosine similarity for unit features) or C.
+Displacements are ordered z-major, then y, then x (see `displacements`), so d = 0 sits in the middle.
+The paper used a custom CUDA kernel; a loop over the (2r+1)³ shifted slices of a padded f1 is
+memory-lean (no B×D×C×Z×Y×X intermediate) and fast enough for the radii used here.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from core.errors import ShapeError, check_shape
+
+
+def displacements(radius: tuple[int, int, int], *, device=None, dtype=torch.float32) -> torch.Tensor:
+    """All integer displacements within radius (rx, ry, rz): D×3 in (x, y, z), z-major order."""
+    rx, ry, rz = radius
+    dz, dy, dx = torch.meshgrid(torch.arange(-rz, rz + 1), torch.arange(-ry, ry + 1),
+                                torch.arange(-rx, rx + 1), indexing="ij")
+    return torch.stack([dx, dy, dz], dim=-1).reshape(-1, 3).to(device=device, dtype=dtype)  # D×3
+
+
+def cross_correlation_3d(f0: torch.Tensor, f1: torch.Tensor, radius: tuple[int, int, int], *,
+                         normalize: bool = False) -> torch.Tensor:
+    """f0, f1: B×C×Z×Y×X; radius (rx, ry, rz) voxels -> cost B×D×Z×Y×X, D = Π(2r+1)."""
+    check_shape("f0", f0, (None, None, None, None, None))
+    check_shape("f1", f1, tuple(f0.shape))
+    rx, ry, rz = (int(r) for r in radius)
+    if min(rx, ry, rz) < 0:
+        raise ShapeError(f"cross_correlation_3d: radius must be non-negative, got {radius}")
+    _, C, Z, Y, X = f0.shape
+    padded = F.pad(f1, (rx, rx, ry, ry, rz, rz))  # B×C×(Z+2rz)×(Y+2ry)×(X+2rx)
+    costs = []
+    for dz in range(2 * rz + 1):
+        for dy in range(2 * ry + 1):
+            for dx in range(2 * rx + 1):
+                shifted = padded[:, :, dz:dz + Z, dy:dy + Y, dx:dx + X]  # B×C×Z×Y×X
+                costs.append((f0 * shifted).sum(dim=1))  # B×Z×Y×X
+    cost = torch.stack(costs, dim=1)  # B×D×Z×Y×X
+    return cost / C if normalize else cost

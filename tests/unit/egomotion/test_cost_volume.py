@@ -1,0 +1,52 @@
+"""Cost volume vs a slow per-voxel reference; candidate rotation set."""
+
+import torch
+
+from core.models.cost_volume import cross_correlation_3d, displacements
+from core.models.egomotion_rotations import candidate_rotations
+from core.geometry import se3
+
+
+def _slow_cost(f0, f1, radius):
+    B, C, Z, Y, X = f0.shape
+    d = displacements(radius).long()
+    out = torch.zeros(B, len(d), Z, Y, X)
+    for i, (dx, dy, dz) in enumerate(d.tolist()):
+        for z in range(Z):
+            for y in range(Y):
+                for x in range(X):
+                    zz, yy, xx = z + dz, y + dy, x + dx
+                    if 0 <= zz < Z and 0 <= yy < Y and 0 <= xx < X:
+                        out[:, i, z, y, x] = (f0[:, :, z, y, x] * f1[:, :, zz, yy, xx]).sum(1)
+    return out
+
+
+def test_cost_volume_matches_slow_reference():
+    g = torch.Generator().manual_seed(0)
+    f0 = torch.randn(2, 3, 3, 2, 4, generator=g)
+    f1 = torch.randn(2, 3, 3, 2, 4, generator=g)
+    r = (1, 1, 2)
+    fast = cross_correlation_3d(f0, f1, r)
+    assert fast.shape == (2, 3 * 3 * 5, 3, 2, 4)
+    torch.testing.assert_close(fast, _slow_cost(f0, f1, r), rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(cross_correlation_3d(f0, f1, r, normalize=True), fast / 3)
+
+
+def test_cost_volume_peaks_at_true_shift():
+    g = torch.Generator().manual_seed(1)
+    f0 = torch.nn.functional.normalize(torch.randn(1, 8, 6, 6, 6, generator=g), dim=1)
+    f1 = torch.roll(f0, shifts=(1, -1), dims=(4, 2))  # f1(p + (1, 0, -1)) = f0(p): dx=+1, dz=-1
+    cost = cross_correlation_3d(f0, f1, (1, 1, 1))[..., 1:-1, 1:-1, 1:-1].mean((2, 3, 4))  # 1×27
+    d = displacements((1, 1, 1))
+    assert d[cost.argmax()].tolist() == [1.0, 0.0, -1.0]
+
+
+def test_candidate_rotations():
+    R = candidate_rotations((2.0, 4.0, 2.0))
+    assert R.shape == (27, 4, 4)
+    torch.testing.assert_close(R[13], torch.eye(4))
+    assert bool(se3.is_rigid(R).all())
+    # product order (rx, ry, rz), rz fastest: (0, +1, 0) offsets sit at 1·9 + 2·3 + 1 = 16 -> yaw +4°
+    torch.testing.assert_close(R[16, :3, :3], se3.yaw_to_matrix(torch.deg2rad(torch.tensor(4.0))))
+    corner = se3.euler_to_matrix(*torch.deg2rad(torch.tensor([2.0, 4.0, 2.0])))
+    torch.testing.assert_close(R[26, :3, :3], corner)
