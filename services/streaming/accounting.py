@@ -2,8 +2,9 @@
 
     received = processed + dropped + malformed + pending
 
-`pending` is 0 or 1 (the newest frame waiting in a camera's slot), so once the stream is idle the
-identity reads received = processed + dropped + malformed. `dropped` counts frames skipped because a
+`pending` counts frames received but not yet in a final bucket: at most 2 per camera (one being
+processed, the newest waiting in the camera's slot), so once the stream is idle the identity reads
+received = processed + dropped + malformed. `dropped` counts frames skipped because a
 newer one arrived first (the bridge was behind), plus duplicate and out-of-order frames; `malformed`
 counts payloads that did not decode or failed validation (and a processing error on a frame).
 """

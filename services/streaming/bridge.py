@@ -182,9 +182,7 @@ class Bridge:
                 return None
             # Oldest-parked camera first, so one busy camera cannot starve the others.
             camera = min(self._slots, key=lambda c: self._slots[c].received_at)
-            parked = self._slots.pop(camera)
-            self.accounting.update(camera, pending=-1)
-            return camera, parked
+            return camera, self._slots.pop(camera)
 
     def _work(self) -> None:
         while True:
@@ -197,6 +195,10 @@ class Bridge:
             except Exception:  # the worker must survive anything a frame can cause
                 log.exception("processing a frame of camera %s failed", camera)
                 self.accounting.update(camera, malformed=1, processing_errors=1)
+            finally:
+                # Leaves `pending` only now that the frame sits in its final bucket, so the
+                # identity received = processed + dropped + malformed + pending holds at every instant.
+                self.accounting.update(camera, pending=-1)
 
     def _handle(self, camera: str, parked: Parked) -> None:
         try:

@@ -1,0 +1,144 @@
+"""The bridge's accounting and fault handling over real zenoh sessions on loopback.
+
+The processor here decodes a tiny JSON payload instead of running models: these tests are about the
+bridge's bookkeeping (drops when behind, malformed payloads, duplicates, out-of-order frames,
+publisher restarts, status and liveliness), which does not depend on what processing does. The
+end-to-end test with the real runtime lives in tests/integration/test_stream_bridge.py.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+from types import SimpleNamespace
+
+import pytest
+import zenoh
+
+from services.streaming import keys
+from services.streaming.bridge import Bridge, MalformedFrame, Outputs
+from services.streaming.session import ZenohOptions, open_session
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class JsonProcessor:
+    """Decodes {"camera_id", "sequence", "timestamp"} JSON; optionally slow, to make the bridge fall behind."""
+
+    def __init__(self, delay_s: float = 0.0) -> None:
+        self.delay_s = delay_s
+        self.seen: list[tuple[str, int]] = []
+        self.release = threading.Event()
+        self.release.set()
+
+    def decode(self, payload: bytes):
+        try:
+            d = json.loads(payload)
+            return SimpleNamespace(camera_id=d["camera_id"], sequence=int(d["sequence"]),
+                                   timestamp=float(d["timestamp"]))
+        except (ValueError, KeyError, TypeError) as e:
+            raise MalformedFrame(f"not a frame: {e}") from None
+
+    def process(self, camera, state, frame):
+        self.release.wait(timeout=10)
+        time.sleep(self.delay_s)
+        self.seen.append((camera, frame.sequence))
+        return Outputs(moving_objects=json.dumps({"seq": frame.sequence}).encode(), egomotion=None)
+
+
+def frame(camera: str, seq: int) -> bytes:
+    return json.dumps({"camera_id": camera, "sequence": seq, "timestamp": time.time()}).encode()
+
+
+def wait_until(predicate, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.02)
+    raise AssertionError("condition not reached in time")
+
+
+@pytest.fixture
+def endpoint():
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+def test_accounting_identity_malformed_duplicates_restart(endpoint):
+    processor = JsonProcessor()
+    bridge = Bridge(processor=processor, zenoh_options=ZenohOptions(listen=(endpoint,)), bridge_id="t1").start()
+    client = open_session(ZenohOptions(connect=(endpoint,)))
+    results: list[bytes] = []
+    sub = client.declare_subscriber(keys.moving_objects("cam0"), lambda s: results.append(s.payload.to_bytes()))
+    try:
+        time.sleep(0.5)  # let the peers connect and the subscription propagate
+        pub = client.declare_publisher(keys.rgbd("cam0"), congestion_control=zenoh.CongestionControl.BLOCK)
+
+        def put(payload: bytes, publisher: str) -> None:
+            pub.put(payload, attachment=f"pub={publisher}".encode())
+            time.sleep(0.05)  # one at a time: this test is about classification, not drops
+
+        put(frame("cam0", 0), "A")
+        put(frame("cam0", 1), "A")
+        put(b"\x00garbage", "A")                      # malformed
+        put(frame("cam0", 1), "A")                    # duplicate
+        put(frame("cam0", 0), "A")                    # out of order
+        put(frame("other", 2), "A")                   # names another camera: malformed
+        put(frame("cam0", 0), "B")                    # publisher restarted: accepted again
+        put(frame("cam0", 1), "B")
+        wait_until(lambda: bridge.status()["cameras"].get("cam0", {}).get("received") == 8
+                   and bridge.status()["cameras"]["cam0"]["pending"] == 0)
+        wait_until(lambda: len(results) == 4)
+        stats = bridge.status()["cameras"]["cam0"]
+        assert stats["processed"] == 4 and processor.seen == [("cam0", 0), ("cam0", 1), ("cam0", 0), ("cam0", 1)]
+        assert stats["malformed"] == 2
+        assert stats["dropped_duplicate"] == 1 and stats["dropped_out_of_order"] == 1
+        assert stats["publisher_restarts"] == 1
+        assert stats["received"] == stats["processed"] + stats["dropped"] + stats["malformed"]
+        assert stats["latency_ms"]["count"] == 4 and stats["latency_ms"]["p50"] >= 0
+
+        # Status answers over zenoh as JSON; the liveliness token announces the bridge.
+        replies = list(client.get(keys.bridge_status("t1"), timeout=5.0))
+        assert json.loads(replies[0].ok.payload.to_bytes())["cameras"]["cam0"]["processed"] == 4
+        tokens = [str(r.ok.key_expr) for r in client.liveliness().get(keys.bridge_token("*"), timeout=5.0)]
+        assert keys.bridge_token("t1") in tokens
+        pub.undeclare()
+    finally:
+        sub.undeclare()
+        client.close()
+        bridge.stop()
+
+
+def test_behind_bridge_processes_newest_and_counts_drops(endpoint):
+    processor = JsonProcessor(delay_s=0.05)
+    processor.release.clear()  # hold the worker so frames pile up behind it
+    bridge = Bridge(processor=processor, zenoh_options=ZenohOptions(listen=(endpoint,)), bridge_id="t2").start()
+    client = open_session(ZenohOptions(connect=(endpoint,)))
+    try:
+        time.sleep(0.5)
+        pub = client.declare_publisher(keys.rgbd("cam1"), congestion_control=zenoh.CongestionControl.BLOCK)
+        pub.put(frame("cam1", 0), attachment=b"pub=A")
+        wait_until(lambda: bridge.status()["cameras"].get("cam1", {}).get("received") == 1)
+        time.sleep(0.1)  # the worker has taken frame 0 and waits on `release`
+        for seq in range(1, 30):
+            pub.put(frame("cam1", seq), attachment=b"pub=A")
+        wait_until(lambda: bridge.status()["cameras"]["cam1"]["received"] == 30)
+        mid = bridge.status()["cameras"]["cam1"]
+        assert mid["pending"] == 2  # frame 0 in the worker, frame 29 parked; 1..28 replaced
+        assert mid["received"] == mid["processed"] + mid["dropped"] + mid["malformed"] + mid["pending"]
+        processor.release.set()
+        wait_until(lambda: bridge.status()["cameras"]["cam1"]["pending"] == 0)
+        stats = bridge.status()["cameras"]["cam1"]
+        assert stats["received"] == stats["processed"] + stats["dropped"] + stats["malformed"]
+        assert stats["dropped_behind"] >= 20           # it skipped what it could not keep up with
+        assert processor.seen[-1] == ("cam1", 29)      # ...and processed the newest frame
+        pub.undeclare()
+    finally:
+        client.close()
+        bridge.stop()
