@@ -1,0 +1,156 @@
+"""Training checkpoints: one directory per saved step, loadable without unpickling code.
+
+Layout of a checkpoint directory:
+
+    task.safetensors   the task's state_dict (every parameter and buffer)
+    optimizer.pt       the optimizer's state_dict, read back with torch.load(weights_only=True)
+    state.json         {"step": int, "config": TrainJobConfig.to_dict(), "metrics": {...}}
+
+Ray Train stores these directories under RUN_DIR/ray_train/ (it picks the latest one for a rerun or
+a retry); the in-process loop (workers=0) keeps them under RUN_DIR/checkpoints/ itself, with the same
+"latest wins, keep the newest K" rule (`LocalCheckpointStore`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from core.errors import N3dmapError
+
+TASK_FILE = "task.safetensors"
+OPTIMIZER_FILE = "optimizer.pt"
+STATE_FILE = "state.json"
+CHECKPOINT_PREFIX = "checkpoint_"
+
+
+class CheckpointError(N3dmapError):
+    """A checkpoint is missing, corrupt, or belongs to a different run."""
+
+
+@dataclass(frozen=True)
+class CheckpointState:
+    """What `load_checkpoint` restores besides the tensors."""
+
+    step: int
+    config: dict
+    metrics: dict
+
+
+def checkpoint_dir_name(step: int) -> str:
+    return f"{CHECKPOINT_PREFIX}{step:08d}"
+
+
+def save_checkpoint(directory: str | Path, *, task: torch.nn.Module, optimizer: torch.optim.Optimizer,
+                    step: int, config: dict, metrics: dict) -> Path:
+    """Write the task, optimizer, step and config into `directory` (created if missing)."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    # clone(): safetensors refuses tensors that share storage; contiguous CPU copies are always safe.
+    tensors = {k: v.detach().to("cpu").contiguous().clone() for k, v in task.state_dict().items()}
+    save_file(tensors, str(directory / TASK_FILE))
+    torch.save(optimizer.state_dict(), directory / OPTIMIZER_FILE)
+    state = {"step": int(step), "config": config, "metrics": _json_safe(metrics)}
+    (directory / STATE_FILE).write_text(json.dumps(state, indent=1, sort_keys=True))
+    return directory
+
+
+def read_checkpoint_state(directory: str | Path) -> CheckpointState:
+    """Read only state.json (step, config, metrics) of a checkpoint."""
+    path = Path(directory) / STATE_FILE
+    try:
+        state = json.loads(path.read_text())
+        return CheckpointState(step=int(state["step"]), config=dict(state["config"]),
+                               metrics=dict(state.get("metrics", {})))
+    except FileNotFoundError:
+        raise CheckpointError(f"checkpoint {directory}: missing {STATE_FILE}") from None
+    except (ValueError, KeyError, TypeError) as e:
+        raise CheckpointError(f"checkpoint {directory}: corrupt {STATE_FILE} ({e})") from None
+
+
+def load_checkpoint(directory: str | Path, *, task: torch.nn.Module,
+                    optimizer: torch.optim.Optimizer | None = None) -> CheckpointState:
+    """Load a checkpoint into `task` (and `optimizer` if given); tensors go to the task's device."""
+    directory = Path(directory)
+    state = read_checkpoint_state(directory)
+    try:
+        tensors = load_file(str(directory / TASK_FILE))
+    except FileNotFoundError:
+        raise CheckpointError(f"checkpoint {directory}: missing {TASK_FILE}") from None
+    except Exception as e:  # safetensors raises its own error types for truncated/corrupt files
+        raise CheckpointError(f"checkpoint {directory}: cannot read {TASK_FILE} ({e})") from None
+    try:
+        task.load_state_dict(tensors, strict=True)
+    except RuntimeError as e:
+        first_line = str(e).strip().splitlines()[0]
+        raise CheckpointError(f"checkpoint {directory} does not fit this task: {first_line}") from None
+    if optimizer is not None:
+        device = _module_device(task)
+        try:
+            opt_state = torch.load(directory / OPTIMIZER_FILE, map_location=device, weights_only=True)
+        except FileNotFoundError:
+            raise CheckpointError(f"checkpoint {directory}: missing {OPTIMIZER_FILE}") from None
+        optimizer.load_state_dict(opt_state)
+    return state
+
+
+def check_same_run(saved_config: dict, identity: dict, where: str | Path) -> None:
+    """Refuse to resume a checkpoint written by a different task / objective / preset."""
+    saved = {k: saved_config.get(k) for k in identity}
+    if saved != identity:
+        diffs = ", ".join(f"{k}: checkpoint {saved[k]!r} vs now {identity[k]!r}"
+                          for k in identity if saved[k] != identity[k])
+        raise CheckpointError(f"run dir holds a different run ({diffs}) in {where}; "
+                              f"use a new --run-dir or the original options")
+
+
+class LocalCheckpointStore:
+    """Checkpoints of the in-process loop: `root/checkpoint_<step>`; newest wins; keeps `keep`."""
+
+    def __init__(self, root: str | Path, *, keep: int) -> None:
+        self.root = Path(root)
+        self.keep = keep
+
+    def list(self) -> list[Path]:
+        """Complete checkpoints, oldest first (a dir counts once its state.json exists)."""
+        if not self.root.is_dir():
+            return []
+        found = [p for p in self.root.iterdir()
+                 if p.is_dir() and p.name.startswith(CHECKPOINT_PREFIX) and (p / STATE_FILE).is_file()]
+        return sorted(found, key=lambda p: p.name)
+
+    def latest(self) -> Path | None:
+        found = self.list()
+        return found[-1] if found else None
+
+    def commit(self, staged: Path, step: int) -> Path:
+        """Move a fully written checkpoint dir into place (atomic rename), then prune old ones."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        final = self.root / checkpoint_dir_name(step)
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(staged, final)
+        for old in self.list()[:-self.keep]:
+            shutil.rmtree(old, ignore_errors=True)
+        return final
+
+
+def _module_device(module: torch.nn.Module) -> torch.device:
+    for p in module.parameters():
+        return p.device
+    return torch.device("cpu")
+
+
+def _json_safe(metrics: dict) -> dict:
+    out = {}
+    for k, v in metrics.items():
+        if isinstance(v, torch.Tensor):
+            v = v.item()
+        out[k] = float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else v
+    return out

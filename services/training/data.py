@@ -1,0 +1,126 @@
+"""Ray Data over our tar shards: a stream of `(shard, key, npz bytes)` rows, decoded on the workers.
+
+Why rows of raw npz bytes rather than decoded tensor columns: records may differ in box count K
+(and Arrow tensor columns want one shape per block), and decoding on the training workers spreads
+that cost over them and reuses the one validated decoder (`core.data.shards.decode_record`). The
+read tasks only split tar files into members and check them against the manifest, so a missing,
+truncated or reordered shard fails with a `DataError` naming it.
+
+`TorchTrainer(datasets={"train": ds})` gives each worker a disjoint, equal streaming split; every
+epoch re-reads the files in a new order (`shuffle="files"`), and the loop adds a local shuffle buffer.
+"""
+
+from __future__ import annotations
+
+import os
+import tarfile
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from core.data.shards import decode_record, load_manifest
+from core.errors import DataError
+
+COLUMNS = ("shard", "key", "npz")
+_BLOCK_RECORDS = 32            # rows per block yielded by a read task
+_BLOCK_BYTES = 64 << 20        # ...or fewer, once this many payload bytes are buffered
+
+
+def dataset_shard_paths(data_dir: str | os.PathLike) -> tuple[list[str], dict[str, list[str]], dict]:
+    """Check the dataset directory; return (absolute shard paths, keys per shard filename, manifest)."""
+    root = Path(data_dir)
+    manifest = load_manifest(root)
+    paths, keys = [], {}
+    for entry in manifest["shards"]:
+        path = root / entry["filename"]
+        if not path.is_file():
+            raise DataError(f"missing shard {entry['filename']} (listed in {root / 'manifest.json'})")
+        paths.append(str(path.resolve()))
+        keys[entry["filename"]] = list(entry["keys"])
+    if not paths:
+        raise DataError(f"{root}: the manifest lists no shards")
+    return paths, keys, manifest
+
+
+def split_tar(f, name: str, expected_keys: list[str] | None) -> Iterator[tuple[str, bytes]]:
+    """Stream `(key, npz bytes)` members of one tar file object, checked against the manifest."""
+    position = 0
+    try:
+        with tarfile.open(fileobj=f, mode="r|") as tar:
+            for member in tar:
+                if not member.isfile() or not member.name.endswith(".npz"):
+                    raise DataError(f"{name}: unexpected member {member.name!r} (expected <key>.npz)")
+                key = member.name[: -len(".npz")]
+                if expected_keys is not None:
+                    if position >= len(expected_keys) or key != expected_keys[position]:
+                        want = expected_keys[position] if position < len(expected_keys) else "nothing"
+                        raise DataError(f"{name}: member {position} is {key!r}, the manifest expects {want}")
+                payload = tar.extractfile(member).read()
+                if len(payload) != member.size:
+                    raise DataError(f"{name} record {key}: truncated shard")
+                position += 1
+                yield key, payload
+    except (tarfile.TarError, EOFError, OSError) as e:
+        raise DataError(f"{name}: truncated or corrupt tar after {position} records: {e}") from None
+    if expected_keys is not None and position != len(expected_keys):
+        raise DataError(f"{name}: truncated shard: {position} of {len(expected_keys)} records")
+
+
+def _make_datasource_class():
+    """Defined lazily so importing this module does not import Ray (the CLI stays fast)."""
+    import pyarrow as pa
+    from ray.data.datasource import FileBasedDatasource
+
+    class TarShardDatasource(FileBasedDatasource):
+        """Reads our WebDataset-layout tar shards into blocks of (shard, key, npz) rows."""
+
+        _FILE_EXTENSIONS = ["tar"]
+
+        def __init__(self, paths: list[str], *, keys_by_shard: dict[str, list[str]], **kwargs):
+            super().__init__(paths, file_extensions=["tar"], **kwargs)
+            self._keys_by_shard = keys_by_shard
+
+        def _read_stream(self, f, path: str):
+            name = os.path.basename(path)
+            rows: list[tuple[str, bytes]] = []
+            buffered = 0
+            for key, payload in split_tar(f, name, self._keys_by_shard.get(name)):
+                rows.append((key, payload))
+                buffered += len(payload)
+                if len(rows) >= _BLOCK_RECORDS or buffered >= _BLOCK_BYTES:
+                    yield _block(pa, name, rows)
+                    rows, buffered = [], 0
+            if rows:
+                yield _block(pa, name, rows)
+
+    return TarShardDatasource
+
+
+def _block(pa, name: str, rows: list[tuple[str, bytes]]):
+    return pa.table({
+        "shard": pa.array([name] * len(rows), type=pa.string()),
+        "key": pa.array([k for k, _ in rows], type=pa.string()),
+        "npz": pa.array([p for _, p in rows], type=pa.large_binary()),
+    })
+
+
+def read_shards(data_dir: str | os.PathLike, *, seed: int):
+    """A Ray Dataset streaming the records of `data_dir` as (shard, key, npz) rows.
+
+    Files are shuffled each epoch (seeded, reseeded per execution). Call inside a Ray session.
+    """
+    import ray.data
+    from ray.data import FileShuffleConfig
+
+    paths, keys, _ = dataset_shard_paths(data_dir)
+    datasource = _make_datasource_class()(
+        paths, keys_by_shard=keys,
+        shuffle=FileShuffleConfig(seed=seed, reseed_after_execution=True))
+    return ray.data.read_datasource(datasource)
+
+
+def decode_rows(batch: dict[str, np.ndarray]) -> list[dict[str, np.ndarray]]:
+    """A numpy batch of (shard, key, npz) rows → list of validated records."""
+    return [decode_record(bytes(payload), f"{shard} record {key}")
+            for shard, key, payload in zip(batch["shard"], batch["key"], batch["npz"])]

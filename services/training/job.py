@@ -1,0 +1,237 @@
+"""Run one training job: in this process (workers=0) or as a Ray Train `TorchTrainer`, then export.
+
+`run_training(config)` is what `n3dmap train <task>` calls when no `--address` is given:
+
+- workers=0: the loop runs right here (no Ray), checkpoints under RUN_DIR/checkpoints/.
+- workers>=1: an embedded local Ray (one logical CPU more than the workers: Ray Data's read tasks
+  need one, see ECOSYSTEM.md) — or, with `config.attach`, the Ray cluster this process runs in (a
+  Ray Jobs entrypoint) — runs `TorchTrainer` with a Ray Data stream of the shards split over the
+  workers, DDP, `FailureConfig(max_failures)`, and checkpoints under RUN_DIR/ray_train/. The same
+  RunConfig(name, storage_path) on a rerun makes Ray hand the latest checkpoint back: that is resume.
+
+A finished run exports RUN_DIR/bundle/ (core.bundle.save_bundle) from its final checkpoint.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from core.errors import DataError
+from services.training.checkpoints import LocalCheckpointStore, load_checkpoint, read_checkpoint_state
+from services.training.config import TrainJobConfig
+from services.training.data import dataset_shard_paths
+from services.training.loop import CORE_TASKS, LoopOutcome, TaskSpec, TrainingError, train_loop
+
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """What a finished run produced."""
+
+    run_dir: Path
+    bundle_dir: Path
+    checkpoint_dir: Path
+    outcome: LoopOutcome
+    seconds: float
+
+
+def check_dataset(config: TrainJobConfig) -> dict:
+    """The dataset's manifest; DataError if it is missing/corrupt or made for another preset."""
+    _, _, manifest = dataset_shard_paths(config.data_dir)
+    data_preset = manifest.get("preset")
+    if data_preset is not None and data_preset != config.preset:
+        raise DataError(f"dataset {config.data_dir} was made with preset {data_preset!r}, "
+                        f"but the run uses --preset {config.preset!r}")
+    return manifest
+
+
+def run_training(config: TrainJobConfig, *, spec: TaskSpec = CORE_TASKS) -> RunSummary:
+    """Train (or resume) `config` to its last step and export its bundle; see the module docstring."""
+    config = config.resolved()
+    manifest = check_dataset(config)
+    config.run_path.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    if config.workers == 0:
+        outcome, checkpoint_dir = _run_in_process(config, spec)
+    else:
+        outcome, checkpoint_dir = _run_on_ray(config)
+    if outcome.status != "finished":
+        raise TrainingError(outcome.message)
+    if checkpoint_dir is None:
+        raise TrainingError(f"run {config.run_dir} finished but left no checkpoint")
+    bundle_dir = export_bundle(config, checkpoint_dir, outcome=outcome, manifest=manifest, spec=spec)
+    return RunSummary(run_dir=config.run_path, bundle_dir=bundle_dir, checkpoint_dir=Path(checkpoint_dir),
+                      outcome=outcome, seconds=time.monotonic() - started)
+
+
+# ----------------------------------------------------------------------------- in-process
+
+def _run_in_process(config: TrainJobConfig, spec: TaskSpec) -> tuple[LoopOutcome, Path | None]:
+    from services.training.sessions import LocalSession
+
+    session = LocalSession(config)
+    outcome = train_loop(config, session, spec)
+    return outcome, session.store.latest()
+
+
+# ----------------------------------------------------------------------------- Ray Train
+
+def ray_train_func(loop_config: dict) -> dict:
+    """The `train_loop_per_worker` of the TorchTrainer: rebuild the config, run the shared loop."""
+    from services.training.sessions import RaySession
+
+    torch.set_num_threads(max(1, int(loop_config.get("threads", 1))))
+    config = TrainJobConfig.from_dict(loop_config["config"])
+    return train_loop(config, RaySession(config)).to_dict()
+
+
+def _init_ray(config: TrainJobConfig) -> bool:
+    """Start an embedded Ray (or attach to the surrounding cluster). Returns True if we started one."""
+    import ray
+
+    if ray.is_initialized():
+        return False
+    pythonpath = os.pathsep.join(p for p in (str(PROJECT_ROOT), os.environ.get("PYTHONPATH")) if p)
+    runtime_env = {"env_vars": {"PYTHONPATH": pythonpath}}
+    if config.attach:
+        # Inside a Ray Jobs entrypoint: join that cluster (RAY_ADDRESS is set by the job supervisor).
+        ray.init(address="auto", runtime_env=runtime_env, log_to_driver=True)
+        return True
+    gpus = int(round(config.workers * config.gpus_per_worker + 0.499)) if config.gpus_per_worker else 0
+    ray.init(
+        address="local",
+        num_cpus=config.workers * config.cpus_per_worker + 1,  # +1: Ray Data read tasks need a CPU
+        num_gpus=gpus or None,
+        include_dashboard=False,
+        object_store_memory=config.object_store_mb * 2**20,
+        runtime_env=runtime_env,
+        log_to_driver=True,
+        configure_logging=True,
+        logging_level="WARNING",
+    )
+    return True
+
+
+def _run_on_ray(config: TrainJobConfig) -> tuple[LoopOutcome, Path | None]:
+    import ray
+    from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig
+    from ray.train.torch import TorchTrainer
+
+    from services.training.data import read_shards
+
+    os.environ.setdefault("RAY_TRAIN_V2_ENABLED", "1")
+    started_here = _init_ray(config)
+    try:
+        resources = {"CPU": config.cpus_per_worker}
+        if config.gpus_per_worker:
+            resources["GPU"] = config.gpus_per_worker
+        trainer = TorchTrainer(
+            ray_train_func,
+            train_loop_config={"config": config.to_dict(), "threads": config.cpus_per_worker},
+            scaling_config=ScalingConfig(num_workers=config.workers, use_gpu=config.gpus_per_worker > 0,
+                                         resources_per_worker=resources),
+            run_config=RunConfig(
+                name=config.ray_storage_name, storage_path=config.run_dir,
+                checkpoint_config=CheckpointConfig(num_to_keep=config.keep_checkpoints),
+                failure_config=FailureConfig(max_failures=config.max_failures),
+            ),
+            datasets={"train": read_shards(config.data_dir, seed=config.seed)},
+        )
+        try:
+            result = trainer.fit()
+        except Exception as e:  # TrainingFailedError wraps the worker's exception
+            raise TrainingError(_root_cause_line(e)) from None
+        outcome = LoopOutcome(**result.return_value)
+        checkpoint = result.checkpoint
+        return outcome, Path(checkpoint.path) if checkpoint is not None else None
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+def _root_cause_line(error: BaseException) -> str:
+    """One line for a failed Ray Train run: the innermost worker error, without the traceback."""
+    seen = set()
+    cause = error
+    while True:
+        nxt = getattr(cause, "worker_failures", None)
+        if isinstance(nxt, dict) and nxt:
+            cause = next(iter(nxt.values()))
+            continue
+        nxt = cause.__cause__ or getattr(cause, "cause", None)
+        if nxt is None or id(nxt) in seen:
+            break
+        seen.add(id(nxt))
+        cause = nxt
+    text = str(cause).strip().splitlines()
+    # Ray prefixes worker errors with a traceback dump; the last line is the exception itself.
+    line = text[-1] if text else type(cause).__name__
+    return f"training failed: {line}"
+
+
+# ----------------------------------------------------------------------------- bundle export
+
+def export_bundle(config: TrainJobConfig, checkpoint_dir: str | Path, *, outcome: LoopOutcome,
+                  manifest: dict, spec: TaskSpec = CORE_TASKS) -> Path:
+    """Write RUN_DIR/bundle/ from the final checkpoint (plus any --init modules the task lacks)."""
+    from core.bundle import load_bundle, save_bundle
+    from core.presets import get_preset
+
+    device = torch.device("cpu")
+    task = spec.build(config, device)
+    state = load_checkpoint(checkpoint_dir, task=task)
+    modules: dict[str, torch.nn.Module] = {}
+    if config.init_bundle:
+        # Keep what the init bundle had (e.g. the pretrained projector) next to what this task trained.
+        modules.update(load_bundle(config.init_bundle, device).modules)
+    modules.update(spec.exported(task))
+    last = outcome.last_metrics or state.metrics
+    metrics = {f"last_{k}": float(v) for k, v in last.items()}
+    metrics.update({f"mean_{k}": float(v) for k, v in outcome.mean_metrics.items()})
+    provenance = {
+        "task": config.task,
+        **{k: v for k, v in config.task_options.items()},
+        "data_manifest": str(Path(config.data_dir) / "manifest.json"),
+        "data_seed": manifest.get("seed"),
+        "data_split": manifest.get("split"),
+        "steps": state.step,
+        "workers": config.workers,
+        "batch_size_per_worker": config.batch_size,
+        "lr": config.lr,
+        "seed": config.seed,
+        "init_bundle": config.init_bundle,
+        "frozen": list(config.freeze),
+        "git_commit": git_commit(),
+        "run_dir": config.run_dir,
+    }
+    save_bundle(config.bundle_path, modules=modules, preset=get_preset(config.preset),
+                provenance=provenance, metrics=metrics)
+    return config.bundle_path
+
+
+def git_commit() -> str | None:
+    """HEAD of the source tree this code runs from, if it is a git checkout."""
+    try:
+        out = subprocess.run(["git", "-C", str(PROJECT_ROOT), "rev-parse", "HEAD"], capture_output=True,
+                             text=True, timeout=5, check=False)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None if out.returncode == 0 else None
+
+
+def latest_checkpoint_dir(config: TrainJobConfig) -> Path | None:
+    """The newest checkpoint of a run dir, whichever mode wrote it (for tools and tests)."""
+    config = config.resolved()
+    candidates = []
+    for root in (config.local_checkpoint_root, config.run_path / config.ray_storage_name):
+        candidates += LocalCheckpointStore(root, keep=1).list()
+    if not candidates:
+        return None
+    return max(candidates, key=lambda p: read_checkpoint_state(p).step)
