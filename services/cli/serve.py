@@ -1,0 +1,52 @@
+"""`n3dmap serve`: REST and gRPC inference over one model bundle, in one process."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "serve", help="serve a model bundle over REST (FastAPI) and gRPC",
+        description="Serve a model bundle over REST and gRPC in one process. SIGTERM drains in-flight "
+                    "requests and stops; SIGHUP (or POST /v1/admin/reload) reloads the bundle.")
+    p.add_argument("--bundle", required=True, help="model bundle directory (bundle.json + weights)")
+    p.add_argument("--host", default="127.0.0.1", help="address both transports bind (default 127.0.0.1)")
+    p.add_argument("--http-port", type=int, default=8000)
+    p.add_argument("--grpc-port", type=int, default=50051)
+    p.add_argument("--token", default=os.environ.get("N3DMAP_TOKEN"),
+                   help="bearer token required by both transports (default: $N3DMAP_TOKEN; none = open)")
+    p.add_argument("--tls-cert", help="PEM certificate for HTTPS and gRPC TLS (with --tls-key)")
+    p.add_argument("--tls-key", help="PEM private key")
+    p.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default)")
+    p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
+    p.add_argument("--max-batch", type=int, default=8, help="largest micro-batch (default 8)")
+    p.add_argument("--max-wait-ms", type=float, default=5.0, help="longest wait to fill a batch (default 5)")
+    p.add_argument("--queue", type=int, default=64, help="waiting requests before 429 (default 64)")
+    p.add_argument("--timeout", type=float, default=30.0, help="per-request deadline in seconds (default 30)")
+    p.add_argument("--max-body-mb", type=float, default=64.0, help="largest request body (default 64 MB)")
+    p.add_argument("--drain", type=float, default=10.0, help="seconds to drain in-flight requests on shutdown")
+    p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from services.cli.main import CliError
+    from services.inference.runtime import RuntimeConfig
+    from services.inference.server import ServeSettings, run as serve
+
+    if bool(args.tls_cert) != bool(args.tls_key):
+        raise CliError("--tls-cert and --tls-key go together")
+    for name in ("http_port", "grpc_port"):
+        if not 0 <= getattr(args, name) <= 65535:
+            raise CliError(f"--{name.replace('_', '-')} must be a port number")
+    if args.max_batch < 1 or args.queue < 1 or args.max_wait_ms < 0 or args.timeout <= 0:
+        raise CliError("--max-batch and --queue must be ≥ 1, --max-wait-ms ≥ 0, --timeout > 0")
+    runtime = RuntimeConfig(bundle_dir=args.bundle, device=args.device, num_threads=args.threads,
+                            max_batch=args.max_batch, max_wait_ms=args.max_wait_ms, max_queue=args.queue,
+                            timeout_s=args.timeout)
+    return serve(ServeSettings(runtime=runtime, host=args.host, http_port=args.http_port,
+                               grpc_port=args.grpc_port, token=args.token or None, tls_cert=args.tls_cert,
+                               tls_key=args.tls_key, max_body_bytes=int(args.max_body_mb * 2**20),
+                               drain_s=args.drain, log_level=args.log_level))

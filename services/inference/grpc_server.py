@@ -1,0 +1,214 @@
+"""gRPC transport (grpc.aio) over the inference runtime: n3dmap.v1.Inference + health + reflection.
+
+Status codes: INVALID_ARGUMENT (bad field, named in the message), UNIMPLEMENTED (module absent from
+the bundle), RESOURCE_EXHAUSTED (queue full), DEADLINE_EXCEEDED, UNAVAILABLE (not ready),
+UNAUTHENTICATED (bearer token). The server binds with SO_REUSEPORT off, so a taken port fails loudly.
+"""
+
+from __future__ import annotations
+
+import hmac
+import logging
+import time
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from core.errors import DataError, ShapeError
+from n3dmap.v1 import inference_pb2, inference_pb2_grpc, types_pb2
+from services.inference import codecs, wire
+from services.inference.errors import (InvalidInput, ModuleUnavailable, NotReady, Overloaded,
+                                       RequestTimeout, ServiceError)
+from services.inference.routes import DetectInput, MapInput, MovingInput, PairInput
+from services.inference.runtime import Runtime
+from services.inference.validation import check_min_score, check_pair, stack_views
+
+log = logging.getLogger("n3dmap.grpc")
+
+SERVICE_NAME = inference_pb2.DESCRIPTOR.services_by_name["Inference"].full_name
+MAX_MESSAGE_BYTES = 64 * 2**20
+_CODES = [(InvalidInput, grpc.StatusCode.INVALID_ARGUMENT), (ModuleUnavailable, grpc.StatusCode.UNIMPLEMENTED),
+          (Overloaded, grpc.StatusCode.RESOURCE_EXHAUSTED), (RequestTimeout, grpc.StatusCode.DEADLINE_EXCEEDED),
+          (NotReady, grpc.StatusCode.UNAVAILABLE), (ShapeError, grpc.StatusCode.INVALID_ARGUMENT),
+          (DataError, grpc.StatusCode.INVALID_ARGUMENT)]
+
+
+def channel_options(max_bytes: int = MAX_MESSAGE_BYTES) -> list[tuple[str, int]]:
+    """Message size limits for both ends (gRPC's default receive limit is 4 MB)."""
+    return [("grpc.max_receive_message_length", max_bytes), ("grpc.max_send_message_length", max_bytes)]
+
+
+def _code_of(e: Exception) -> grpc.StatusCode | None:
+    for cls, code in _CODES:
+        if isinstance(e, cls):
+            return code
+    return None
+
+
+def _deadline(context: grpc.aio.ServicerContext) -> float | None:
+    remaining = context.time_remaining()
+    return remaining if remaining is not None and remaining > 0 else None
+
+
+class InferenceServicer(inference_pb2_grpc.InferenceServicer):
+    def __init__(self, runtime: Runtime):
+        self.runtime = runtime
+
+    async def _call(self, rpc: str, context, fn):
+        started = time.perf_counter()
+        status = "OK"
+        try:
+            return await fn()
+        except (ServiceError, ShapeError, DataError) as e:
+            code = _code_of(e)
+            status = code.name
+            await context.abort(code, str(e))
+        except Exception as e:
+            if isinstance(e, (grpc.aio.AbortError, grpc.RpcError)):
+                raise
+            status = "INTERNAL"
+            log.exception("%s failed", rpc)
+            await context.abort(grpc.StatusCode.INTERNAL, f"{type(e).__name__}: {e}")
+        finally:
+            self.runtime.metrics.observe_request("grpc", rpc, status, time.perf_counter() - started)
+
+    def _grid(self) -> inference_pb2.Grid:
+        return wire.grid_proto(self.runtime.bundle.preset.grid.to_dict())
+
+    async def Map(self, request: inference_pb2.MapRequest, context):
+        async def run():
+            item = MapInput(views=wire.views_from_proto(request.views, "views"), features=request.features)
+            answer = await self.runtime.infer("map", item, timeout_s=_deadline(context))
+            r = answer.result
+            return inference_pb2.MapResponse(
+                info=wire.info_proto(answer), grid=self._grid(), occupancy=codecs.numpy_to_tensor(r.occupancy),
+                heightmap=codecs.numpy_to_tensor(r.heightmap),
+                features=codecs.numpy_to_tensor(r.features) if r.features is not None else None)
+        return await self._call("Map", context, run)
+
+    def _pair(self, request) -> PairInput:
+        v0 = wire.views_from_proto(request.views0, "views0")
+        v1 = wire.views_from_proto(request.views1, "views1")
+        check_pair(v0, v1, "views1")
+        return PairInput(views0=v0, views1=v1)
+
+    async def Egomotion(self, request: inference_pb2.PairRequest, context):
+        async def run():
+            answer = await self.runtime.infer("egomotion", self._pair(request), timeout_s=_deadline(context))
+            return inference_pb2.EgomotionResponse(info=wire.info_proto(answer),
+                                                   cam0_T_cam1=codecs.numpy_to_tensor(answer.result.cam0_T_cam1))
+        return await self._call("Egomotion", context, run)
+
+    async def Flow(self, request: inference_pb2.PairRequest, context):
+        async def run():
+            answer = await self.runtime.infer("flow", self._pair(request), timeout_s=_deadline(context))
+            return inference_pb2.FlowResponse(info=wire.info_proto(answer), grid=self._grid(),
+                                              flow=codecs.numpy_to_tensor(answer.result.flow))
+        return await self._call("Flow", context, run)
+
+    async def Detect(self, request: inference_pb2.DetectRequest, context):
+        async def run():
+            views = wire.views_from_proto(request.views, "views")
+            item = DetectInput(views=views, min_score=check_min_score(request.min_score))
+            answer = await self.runtime.infer("detect", item, timeout_s=_deadline(context))
+            return inference_pb2.DetectionsResponse(info=wire.info_proto(answer), detections=wire.detections_proto(
+                answer.result, frame=answer.frame, bundle_version=answer.bundle_version, views=views))
+        return await self._call("Detect", context, run)
+
+    async def MovingObjects(self, request: inference_pb2.MovingObjectsRequest, context):
+        async def run():
+            pair = self._pair(request)
+            item = MovingInput(views0=pair.views0, views1=pair.views1, min_score=check_min_score(request.min_score))
+            answer = await self.runtime.infer("moving_objects", item, timeout_s=_deadline(context))
+            return inference_pb2.DetectionsResponse(info=wire.info_proto(answer), detections=wire.detections_proto(
+                answer.result, frame=answer.frame, bundle_version=answer.bundle_version, views=pair.views1))
+        return await self._call("MovingObjects", context, run)
+
+    async def Models(self, request, context):
+        async def run():
+            d = self.runtime.describe()
+            return inference_pb2.ModelsResponse(
+                bundle_version=d["bundle_version"], preset=d["preset"], modules=d["modules"], routes=d["routes"],
+                grid=wire.grid_proto(d["grid"]), device=d["device"], meta_json=d["meta_json"])
+        return await self._call("Models", context, run)
+
+    async def StreamMovingObjects(self, request_iterator, context):
+        """Per camera, moving objects between its previous frame and this one (first: no boxes)."""
+        started = time.perf_counter()
+        try:
+            self.runtime.require("moving_objects")
+        except ModuleUnavailable as e:
+            await context.abort(grpc.StatusCode.UNIMPLEMENTED, str(e))
+        previous: dict[str, object] = {}
+        async for frame in request_iterator:
+            received = time.perf_counter()
+            try:
+                views = stack_views([wire.view_from_proto(frame, "frame")], "frame")
+                prev = previous.get(frame.camera_id)
+                previous[frame.camera_id] = views
+                if prev is None or prev.shape_key != views.shape_key:
+                    yield types_pb2.Detections(frame="ref", bundle_version=self.runtime.version,
+                                               camera_id=frame.camera_id, sequence=frame.sequence,
+                                               source_timestamp=frame.timestamp,
+                                               latency_s=time.perf_counter() - received)
+                    continue
+                answer = await self.runtime.infer("moving_objects", MovingInput(views0=prev, views1=views),
+                                                  timeout_s=_deadline(context))
+            except (ServiceError, ShapeError, DataError) as e:
+                self.runtime.metrics.observe_request("grpc", "StreamMovingObjects", _code_of(e).name,
+                                                     time.perf_counter() - started)
+                await context.abort(_code_of(e), str(e))
+            yield wire.detections_proto(answer.result, frame=answer.frame, bundle_version=answer.bundle_version,
+                                        views=views, latency_s=time.perf_counter() - received)
+        self.runtime.metrics.observe_request("grpc", "StreamMovingObjects", "OK", time.perf_counter() - started)
+
+
+class _TokenInterceptor(grpc.aio.ServerInterceptor):
+    """Rejects calls without `authorization: Bearer <token>` (health checks stay open for probes)."""
+
+    def __init__(self, token: str):
+        self._want = f"Bearer {token}".encode()
+
+        async def deny(request, context):
+            await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong bearer token")
+
+        async def deny_stream(request_iterator, context):
+            await context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or wrong bearer token")
+            yield  # pragma: no cover (makes this an async generator)
+
+        self._deny_unary = grpc.unary_unary_rpc_method_handler(deny)
+        self._deny_stream = grpc.stream_stream_rpc_method_handler(deny_stream)
+
+    async def intercept_service(self, continuation, handler_call_details):
+        method = handler_call_details.method
+        if method.startswith("/grpc.health.v1.Health/"):
+            return await continuation(handler_call_details)
+        got = dict(handler_call_details.invocation_metadata or ()).get("authorization", "")
+        if hmac.compare_digest(str(got).encode(), self._want):
+            return await continuation(handler_call_details)
+        return self._deny_stream if method.endswith("/StreamMovingObjects") else self._deny_unary
+
+
+async def start_grpc_server(runtime: Runtime, *, host: str, port: int, token: str | None = None,
+                            tls_cert: bytes | None = None, tls_key: bytes | None = None
+                            ) -> tuple[grpc.aio.Server, int, health.HealthServicer]:
+    """Build, bind and start the server. Returns (server, bound port, health servicer)."""
+    interceptors = [_TokenInterceptor(token)] if token else []
+    server = grpc.aio.server(interceptors=interceptors,
+                             options=channel_options() + [("grpc.so_reuseport", 0)])
+    inference_pb2_grpc.add_InferenceServicer_to_server(InferenceServicer(runtime), server)
+    health_servicer = health.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    reflection.enable_server_reflection((SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), server)
+    address = f"{host}:{port}"
+    if tls_cert is not None:
+        bound = server.add_secure_port(address, grpc.ssl_server_credentials([(tls_key, tls_cert)]))
+    else:
+        bound = server.add_insecure_port(address)
+    if bound == 0:
+        raise OSError(f"gRPC could not bind {address} (port taken?)")
+    await server.start()
+    for name in ("", SERVICE_NAME):
+        await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
+    return server, bound, health_servicer

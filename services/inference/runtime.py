@@ -1,0 +1,218 @@
+"""The inference runtime: one loaded bundle, one model thread, micro-batching, hot reload.
+
+One `Runtime` serves every transport (REST, gRPC, the zenoh bridge): they validate and decode, then
+`await runtime.infer(route, input)`. Models run in a single executor thread (CPU inference is
+already multi-threaded inside torch; one thread keeps batches large and threads from fighting),
+under `torch.inference_mode()` entered in that thread (it is thread-local).
+
+Reload loads the new bundle in a separate thread while the old one keeps serving, then swaps it in
+between batches; if loading fails the old bundle stays and the error is kept in `last_reload_error`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from core.errors import BundleError
+from services.inference.batching import BatchConfig, BatchStats, MicroBatcher
+from services.inference.errors import ModuleUnavailable, NotReady
+from services.inference.metrics import Metrics
+from services.inference.routes import BOX_FRAME, ROUTES, Route
+
+log = logging.getLogger("n3dmap.inference")
+
+_threads_set = False
+
+
+@dataclass(frozen=True)
+class RuntimeConfig:
+    bundle_dir: str
+    device: str = "auto"                 # "cpu", "cuda", "cuda:1", or "auto" (cuda if available)
+    num_threads: int | None = None       # torch intra-op threads; None = torch's default
+    max_batch: int = 8
+    max_wait_ms: float = 5.0
+    max_queue: int = 64
+    timeout_s: float = 30.0              # per-request deadline (queue + model)
+
+
+@dataclass(frozen=True)
+class Answer:
+    """A route's result plus what every response reports."""
+
+    result: Any
+    bundle_version: str
+    frame: str
+    stats: BatchStats
+
+
+@dataclass(frozen=True)
+class _Loaded:
+    bundle: Any
+    version: str
+    path: str
+    loaded_at: float
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise BundleError(f"device {name!r} asked for, but CUDA is not available here")
+    return device
+
+
+def bundle_version(bundle) -> str:
+    meta = getattr(bundle, "meta", {}) or {}
+    return str(meta.get("version") or meta.get("name") or "unversioned")
+
+
+def _load(path: str, device: torch.device) -> _Loaded:
+    from core.bundle import load_bundle  # safetensors / weights_only: no code is unpickled
+
+    bundle = load_bundle(path, device)
+    for module in bundle.modules.values():
+        module.eval()
+    return _Loaded(bundle=bundle, version=bundle_version(bundle), path=str(path), loaded_at=time.time())
+
+
+class Runtime:
+    """Create, `await start()`, serve with `await infer(route, input)`, `await stop()`."""
+
+    def __init__(self, config: RuntimeConfig, *, metrics: Metrics | None = None):
+        global _threads_set
+        self.config = config
+        self.metrics = metrics or Metrics()
+        self.device = resolve_device(config.device)
+        if config.num_threads and not _threads_set:
+            torch.set_num_threads(config.num_threads)  # once per process: torch warns on a second call
+            _threads_set = True
+        self._loaded = _load(config.bundle_dir, self.device)
+        self.last_reload_error: str | None = None
+        self._model_thread = ThreadPoolExecutor(1, thread_name_prefix="n3dmap-model")
+        self._reload_lock: asyncio.Lock | None = None
+        self._batcher = MicroBatcher(
+            self._run_batch, self._model_thread,
+            config=BatchConfig(max_batch=config.max_batch, max_wait_s=config.max_wait_ms / 1000.0,
+                               max_queue=config.max_queue),
+            observe=lambda key, n, waits, model_s: self.metrics.observe_batch(key[0], n, waits, model_s))
+        self.ready = False
+
+    # --- lifecycle -------------------------------------------------------------------------
+    async def start(self) -> None:
+        self._reload_lock = asyncio.Lock()
+        self._batcher.start()
+        self.ready = True
+        log.info("runtime ready: bundle %s (%s) on %s, routes %s", self.version, self._loaded.path,
+                 self.device, ", ".join(self.routes))
+
+    async def stop(self, drain_s: float = 10.0) -> None:
+        """Refuse new requests, let in-flight ones finish (up to drain_s), stop the model thread."""
+        self.ready = False
+        drained = await self._batcher.drain(drain_s)
+        if not drained:
+            log.warning("shutdown: %d requests still in flight after %.1f s", self._batcher.in_flight, drain_s)
+        await self._batcher.stop()
+        self._model_thread.shutdown(wait=True)
+
+    # --- what is loaded --------------------------------------------------------------------
+    @property
+    def bundle(self):
+        return self._loaded.bundle
+
+    @property
+    def version(self) -> str:
+        return self._loaded.version
+
+    @property
+    def modules(self) -> list[str]:
+        return sorted(self._loaded.bundle.modules)
+
+    @property
+    def routes(self) -> list[str]:
+        have = set(self._loaded.bundle.modules)
+        return [name for name, r in ROUTES.items() if set(r.modules) <= have]
+
+    @property
+    def queued(self) -> int:
+        return self._batcher.queued
+
+    def describe(self) -> dict:
+        """What /v1/models and the Models RPC report."""
+        bundle = self._loaded.bundle
+        meta = getattr(bundle, "meta", {}) or {}
+        return {"bundle_version": self.version, "bundle_path": self._loaded.path,
+                "preset": bundle.preset.name, "modules": self.modules, "routes": self.routes,
+                "grid": bundle.preset.grid.to_dict(), "device": str(self.device),
+                "loaded_at": self._loaded.loaded_at, "last_reload_error": self.last_reload_error,
+                "meta_json": json.dumps(meta, sort_keys=True, default=str)}
+
+    def require(self, route: str) -> Route:
+        """The route, or ModuleUnavailable if the loaded bundle lacks one of its modules."""
+        r = ROUTES[route]
+        missing = [m for m in r.modules if m not in self._loaded.bundle.modules]
+        if missing:
+            raise ModuleUnavailable(route, missing, self.version)
+        return r
+
+    # --- inference -------------------------------------------------------------------------
+    async def infer(self, route: str, item: Any, *, timeout_s: float | None = None) -> Answer:
+        """Validated input of `route` -> Answer. Raises the typed errors of services.inference.errors."""
+        if not self.ready:
+            raise NotReady("the runtime is not ready (starting, reloading state or shutting down)")
+        r = self.require(route)
+        (result, version), stats = await self._batcher.submit(
+            r.batch_key(item), item, timeout_s=timeout_s or self.config.timeout_s)
+        return Answer(result=result, bundle_version=version, frame=BOX_FRAME, stats=stats)
+
+    def infer_sync(self, route: str, items: list) -> list:
+        """In-process, unqueued call of a whole batch on the caller's thread (benchmarks, tools)."""
+        r = self.require(route)
+        with torch.inference_mode():
+            return r.run(self._loaded.bundle, items, self.device)
+
+    def _run_batch(self, key, items: list) -> list:
+        loaded = self._loaded  # one bundle for the whole batch, even if a reload swaps meanwhile
+        route = ROUTES[key[0]]
+        missing = [m for m in route.modules if m not in loaded.bundle.modules]
+        if missing:  # a reload removed the module while the request waited
+            raise ModuleUnavailable(route.name, missing, loaded.version)
+        with torch.inference_mode():
+            results = route.run(loaded.bundle, items, self.device)
+        return [(r, loaded.version) for r in results]
+
+    # --- reload ----------------------------------------------------------------------------
+    async def reload(self, bundle_dir: str | None = None) -> dict:
+        """Load `bundle_dir` (default: the current path again) and swap it in.
+
+        On failure the old bundle keeps serving, `last_reload_error` says why, and BundleError is
+        raised. Loading runs in its own thread, so requests keep being answered meanwhile.
+        """
+        path = str(bundle_dir or self._loaded.path)
+        async with self._reload_lock:
+            try:
+                if not Path(path).is_dir():
+                    raise BundleError(f"bundle directory {path} does not exist")
+                loaded = await asyncio.get_running_loop().run_in_executor(None, _load, path, self.device)
+            except Exception as e:  # any failure to load keeps the old bundle serving
+                self.last_reload_error = f"{type(e).__name__}: {e}"
+                self.metrics.reloads.labels("error").inc()
+                log.error("reload of %s failed; still serving %s: %s", path, self.version, self.last_reload_error)
+                if isinstance(e, BundleError):
+                    raise
+                raise BundleError(f"reloading {path} failed: {self.last_reload_error}") from e
+            old = self.version
+            self._loaded = loaded
+            self.last_reload_error = None
+            self.metrics.reloads.labels("ok").inc()
+            log.info("reloaded bundle %s -> %s from %s", old, loaded.version, path)
+            return self.describe()

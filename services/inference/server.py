@@ -1,0 +1,100 @@
+"""Both transports in one process: uvicorn serves the FastAPI app, whose lifespan starts the runtime
+and the grpc.aio server on the same event loop.
+
+Signals: SIGTERM/SIGINT shut down gracefully (gRPC health turns NOT_SERVING, uvicorn stops accepting
+and finishes open HTTP requests, gRPC gets `drain_s` to finish its calls, then the runtime drains its
+queue); SIGHUP reloads the bundle from its directory (the old bundle keeps serving if that fails).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+import sys
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from grpc_health.v1 import health_pb2
+
+from core.errors import BundleError
+from services.inference.grpc_server import start_grpc_server
+from services.inference.rest import DEFAULT_MAX_BODY, create_app
+from services.inference.runtime import Runtime, RuntimeConfig
+
+log = logging.getLogger("n3dmap.serve")
+
+
+@dataclass(frozen=True)
+class ServeSettings:
+    runtime: RuntimeConfig
+    host: str = "127.0.0.1"
+    http_port: int = 8000
+    grpc_port: int = 50051
+    token: str | None = None
+    tls_cert: str | None = None
+    tls_key: str | None = None
+    max_body_bytes: int = DEFAULT_MAX_BODY
+    drain_s: float = 10.0
+    log_level: str = "info"
+
+
+def build_app(settings: ServeSettings, runtime: Runtime):
+    """The FastAPI app whose lifespan also runs the gRPC server (and the SIGHUP reload handler)."""
+    cert = Path(settings.tls_cert).read_bytes() if settings.tls_cert else None
+    key = Path(settings.tls_key).read_bytes() if settings.tls_key else None
+
+    @asynccontextmanager
+    async def lifespan(app):
+        await runtime.start()
+        try:
+            server, port, health = await start_grpc_server(
+                runtime, host=settings.host, port=settings.grpc_port, token=settings.token,
+                tls_cert=cert, tls_key=key)
+        except Exception as e:
+            await runtime.stop(drain_s=0)
+            raise OSError(f"gRPC server failed to start on {settings.host}:{settings.grpc_port}: {e}") from e
+        app.state.grpc_port = port
+        loop = asyncio.get_running_loop()
+
+        async def reload_on_signal():
+            try:
+                await runtime.reload()
+            except BundleError as e:
+                log.error("SIGHUP reload failed: %s", e)
+
+        loop.add_signal_handler(signal.SIGHUP, lambda: loop.create_task(reload_on_signal()))
+        scheme = "https" if cert else "http"
+        print(f"n3dmap serve: bundle {runtime.version} on {runtime.device}; REST {scheme}://{settings.host}:"
+              f"{settings.http_port}  gRPC {settings.host}:{port}  routes: {', '.join(runtime.routes)}",
+              file=sys.stderr, flush=True)
+        try:
+            yield
+        finally:
+            loop.remove_signal_handler(signal.SIGHUP)
+            for name in ("", "n3dmap.v1.Inference"):
+                await health.set(name, health_pb2.HealthCheckResponse.NOT_SERVING)
+            await server.stop(grace=settings.drain_s)
+            await runtime.stop(drain_s=settings.drain_s)
+            print("n3dmap serve: stopped", file=sys.stderr, flush=True)
+
+    return create_app(runtime, token=settings.token, max_body_bytes=settings.max_body_bytes, lifespan=lifespan)
+
+
+def run(settings: ServeSettings) -> int:
+    """Serve until SIGTERM/SIGINT. Errors in the bundle or ports end the process with a message."""
+    import uvicorn
+
+    if bool(settings.tls_cert) != bool(settings.tls_key):
+        raise BundleError("--tls-cert and --tls-key go together")
+    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    runtime = Runtime(settings.runtime)
+    app = build_app(settings, runtime)
+    config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level=settings.log_level,
+                            ssl_certfile=settings.tls_cert, ssl_keyfile=settings.tls_key,
+                            timeout_graceful_shutdown=int(settings.drain_s) or None, lifespan="on")
+    server = uvicorn.Server(config)
+    server.run()
+    # uvicorn returns normally when startup fails (port taken, gRPC bind error): say so by status.
+    return 0 if server.started else 1

@@ -1,0 +1,173 @@
+"""Validation of decoded request arrays: shapes, dtypes, finite values, rigid poses, intrinsics.
+
+Every check raises InvalidInput naming the offending field (e.g. `views[1].pix_T_cam`), so a
+client's mistake is always a 4xx, never a 500. Transports decode bytes (codecs.py) and hand the
+arrays to `make_view` / `stack_views`; the runtime only ever sees validated `Views`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field as dc_field
+
+import numpy as np
+
+from services.inference.errors import InvalidInput
+
+MAX_VIEWS = 16
+MAX_SIDE = 4096
+RIGID_TOL = 1e-3
+MAX_DEPTH_M = 1000.0
+
+
+@dataclass(frozen=True)
+class View:
+    """One validated RGB-D view: rgb H×W×3 uint8, depth H×W float32 metres, 4×4 float32 matrices."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    pix_T_cam: np.ndarray
+    world_T_cam: np.ndarray
+    camera_id: str = ""
+    sequence: int = 0
+    timestamp: float = 0.0
+
+
+@dataclass(frozen=True)
+class Views:
+    """Views of one instant, stacked: rgb V×H×W×3 uint8, depth V×H×W float32, pix_T_cam and
+    world_T_cam V×4×4 float32. `ref` is the camera of view 0."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    pix_T_cam: np.ndarray
+    world_T_cam: np.ndarray
+    camera_ids: list[str] = dc_field(default_factory=list)
+    sequence: int = 0
+    timestamp: float = 0.0
+
+    @property
+    def shape_key(self) -> tuple[int, int, int]:
+        """(V, H, W): requests batch together only when these agree."""
+        V, H, W = self.depth.shape
+        return (V, H, W)
+
+
+def check_rgb(arr: np.ndarray, field: str) -> np.ndarray:
+    """H×W×3 uint8 (an H×W×4 array drops its alpha)."""
+    if arr.dtype != np.uint8:
+        raise InvalidInput(field, f"rgb must be uint8, got {arr.dtype}")
+    if arr.ndim == 3 and arr.shape[2] == 4:
+        arr = arr[:, :, :3]
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise InvalidInput(field, f"rgb must have shape H×W×3, got {list(arr.shape)}")
+    _check_side(arr.shape[0], arr.shape[1], field)
+    return np.ascontiguousarray(arr)
+
+
+def check_depth(arr: np.ndarray, field: str) -> np.ndarray:
+    """H×W metres as float32; uint16 arrays are millimetres. Finite, ≥ 0 (0 = missing)."""
+    if arr.dtype == np.uint16:
+        arr = arr.astype(np.float32) / 1000.0
+    elif arr.dtype in (np.float32, np.float64):
+        arr = arr.astype(np.float32, copy=False)
+    else:
+        raise InvalidInput(field, f"depth must be float32 metres or uint16 millimetres, got {arr.dtype}")
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    if arr.ndim != 2:
+        raise InvalidInput(field, f"depth must have shape H×W, got {list(arr.shape)}")
+    _check_side(arr.shape[0], arr.shape[1], field)
+    if not np.isfinite(arr).all():
+        raise InvalidInput(field, f"depth has {int((~np.isfinite(arr)).sum())} non-finite values")
+    if (arr < 0).any() or (arr > MAX_DEPTH_M).any():
+        raise InvalidInput(field, f"depth must lie in [0, {MAX_DEPTH_M:g}] metres (0 = missing)")
+    return np.ascontiguousarray(arr)
+
+
+def _check_matrix(arr: np.ndarray, field: str) -> np.ndarray:
+    arr = np.asarray(arr)
+    if arr.dtype.kind not in "fiu":
+        raise InvalidInput(field, f"must be a numeric 4×4 matrix, got dtype {arr.dtype}")
+    if arr.shape == (16,):
+        arr = arr.reshape(4, 4)  # 16 -> 4×4, row-major
+    if arr.shape != (4, 4):
+        raise InvalidInput(field, f"must have shape 4×4, got {list(arr.shape)}")
+    arr = arr.astype(np.float64)
+    if not np.isfinite(arr).all():
+        raise InvalidInput(field, "has non-finite entries")
+    if np.abs(arr[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-6:
+        raise InvalidInput(field, f"last row must be [0, 0, 0, 1], got {arr[3].tolist()}")
+    return arr
+
+
+def check_intrinsics(arr, field: str) -> np.ndarray:
+    """4×4 pinhole intrinsics with fx, fy > 0, no skew, third row [0, 0, 1, 0]."""
+    m = _check_matrix(arr, field)
+    fx, fy = m[0, 0], m[1, 1]
+    if not (fx > 0 and fy > 0):
+        raise InvalidInput(field, f"focal lengths must be positive, got fx={fx:g} fy={fy:g}")
+    if abs(m[0, 1]) > 1e-6 or abs(m[1, 0]) > 1e-6 or np.abs(m[2] - [0, 0, 1, 0]).max() > 1e-6:
+        raise InvalidInput(field, "must be a pinhole matrix [[fx,0,cx,0],[0,fy,cy,0],[0,0,1,0],[0,0,0,1]]")
+    return m.astype(np.float32)
+
+
+def check_pose(arr, field: str) -> np.ndarray:
+    """4×4 rigid transform: orthonormal rotation with determinant +1."""
+    m = _check_matrix(arr, field)
+    R = m[:3, :3]
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    if err > RIGID_TOL or np.linalg.det(R) <= 0:
+        raise InvalidInput(field, f"is not a rigid transform (|RᵀR − I| = {err:.2g}, "
+                                  f"det R = {np.linalg.det(R):.3g})")
+    return m.astype(np.float32)
+
+
+def _check_side(H: int, W: int, field: str) -> None:
+    if not (1 <= H <= MAX_SIDE and 1 <= W <= MAX_SIDE):
+        raise InvalidInput(field, f"image size {H}×{W} outside 1..{MAX_SIDE}")
+
+
+def make_view(*, rgb: np.ndarray, depth: np.ndarray, pix_T_cam, world_T_cam=None, field: str,
+              camera_id: str = "", sequence: int = 0, timestamp: float = 0.0) -> View:
+    """Validate one view's arrays; `field` prefixes the names in errors (e.g. `views[0]`)."""
+    rgb = check_rgb(rgb, f"{field}.rgb")
+    depth = check_depth(depth, f"{field}.depth")
+    if rgb.shape[:2] != depth.shape:
+        raise InvalidInput(f"{field}.depth", f"size {depth.shape[0]}×{depth.shape[1]} differs from rgb "
+                                             f"{rgb.shape[0]}×{rgb.shape[1]}")
+    pix_T_cam = check_intrinsics(pix_T_cam, f"{field}.pix_T_cam")
+    world_T_cam = (np.eye(4, dtype=np.float32) if world_T_cam is None
+                   else check_pose(world_T_cam, f"{field}.world_T_cam"))
+    if not np.isfinite(timestamp):
+        raise InvalidInput(f"{field}.timestamp", "must be finite")
+    return View(rgb=rgb, depth=depth, pix_T_cam=pix_T_cam, world_T_cam=world_T_cam,
+                camera_id=camera_id, sequence=int(sequence), timestamp=float(timestamp))
+
+
+def stack_views(views: list[View], field: str) -> Views:
+    """Views of one instant -> Views (all the same size, 1..MAX_VIEWS of them)."""
+    if not 1 <= len(views) <= MAX_VIEWS:
+        raise InvalidInput(field, f"need 1..{MAX_VIEWS} views, got {len(views)}")
+    size = views[0].depth.shape
+    for i, v in enumerate(views):
+        if v.depth.shape != size:
+            raise InvalidInput(f"{field}[{i}]", f"size {v.depth.shape} differs from view 0's {size}")
+    return Views(rgb=np.stack([v.rgb for v in views]),              # V×H×W×3
+                 depth=np.stack([v.depth for v in views]),          # V×H×W
+                 pix_T_cam=np.stack([v.pix_T_cam for v in views]),  # V×4×4
+                 world_T_cam=np.stack([v.world_T_cam for v in views]),
+                 camera_ids=[v.camera_id for v in views],
+                 sequence=views[0].sequence, timestamp=max(v.timestamp for v in views))
+
+
+def check_pair(views0: Views, views1: Views, field1: str) -> None:
+    """Both instants of a pair request must have the same views layout."""
+    if views0.shape_key != views1.shape_key:
+        raise InvalidInput(field1, f"views (V, H, W) = {views1.shape_key} differ from the first "
+                                   f"instant's {views0.shape_key}")
+
+
+def check_min_score(value: float, field: str = "min_score") -> float:
+    if not (np.isfinite(value) and 0.0 <= value <= 1.0):
+        raise InvalidInput(field, f"must lie in [0, 1], got {value}")
+    return float(value)
