@@ -1,0 +1,294 @@
+"""`n3dmap data`: generate, import, inspect, verify and preview sharded datasets.
+
+    n3dmap data generate --out DIR --preset tiny --episodes 64 --seed 0 [--views V] [--frames T]
+                         [--split train|val] [--moving-ego on|off|mixed] [--sparse-depth]
+                         [--noise SIGMA] [--shard-mb MB] [--overwrite]
+    n3dmap data info DIR [--verify] [--json]
+    n3dmap data preview DIR --out FILE.png [--index I]
+    n3dmap data import authors-npz|kitti|tum SRC --out DIR [...]
+
+Seeds: record i of `generate --seed S` is `core.synthetic.generate_record(preset, seed=S*100003 + i)`,
+so a record can be rebuilt alone and datasets made with different S never share a record for
+S*100003 + i distinct (fewer than 100003 records per dataset). `--moving-ego mixed` moves the ego in
+the odd-indexed records.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Callable, Iterator
+
+# Errors are raised as core.errors types (not services.cli.main.CliError): under
+# `python -m services.cli.main` that module is __main__, and its CliError would be a different class.
+from core.errors import DataError, N3dmapError
+
+SEED_STRIDE = 100003
+
+
+def episode_seed(seed: int, index: int) -> int:
+    """Seed of record `index` of a dataset generated with `--seed seed`."""
+    return seed * SEED_STRIDE + index
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "data", help="generate, import, inspect and preview datasets",
+        description="Datasets are directories of manifest.json + tar shards of npz records (DESIGN.md §3).")
+    sub = parser.add_subparsers(dest="data_command", metavar="SUBCOMMAND", required=True)
+
+    g = sub.add_parser("generate", help="render a synthetic dataset (built-in world, no downloads)",
+                       description="Render records of the built-in synthetic world into shards. Record i "
+                                   f"uses seed = SEED*{SEED_STRIDE} + i.")
+    g.add_argument("--out", required=True, type=Path, help="dataset directory to create")
+    g.add_argument("--preset", required=True, choices=["tiny", "small", "paper"])
+    g.add_argument("--episodes", required=True, type=_positive_int, help="number of records")
+    g.add_argument("--seed", type=int, default=0, help="dataset seed S (record i uses S*100003+i)")
+    g.add_argument("--views", type=_positive_int, default=None, help="views per record (default: preset)")
+    g.add_argument("--frames", type=_positive_int, default=None, help="time steps per record (default: preset)")
+    g.add_argument("--split", choices=["train", "val"], default="train")
+    g.add_argument("--moving-ego", choices=["on", "off", "mixed"], default="off",
+                   help="whether the ego rig moves (mixed: odd-indexed records)")
+    g.add_argument("--sparse-depth", action="store_true", help="LiDAR-like sparse depth")
+    g.add_argument("--noise", type=_non_negative_float, default=0.0, help="depth noise sigma, metres")
+    g.add_argument("--shard-mb", type=_positive_float, default=256.0, help="target shard size in MB")
+    g.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
+    g.set_defaults(func=cmd_generate)
+
+    i = sub.add_parser("info", help="print a dataset's manifest summary (and verify it)")
+    i.add_argument("dir", type=Path)
+    i.add_argument("--verify", action="store_true", help="check shard sha256 and decode every record")
+    i.add_argument("--json", action="store_true", help="print the manifest (without key lists) as JSON")
+    i.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("preview", help="write a PNG contact sheet of one record")
+    p.add_argument("dir", type=Path)
+    p.add_argument("--out", required=True, type=Path, help="PNG file to write")
+    p.add_argument("--index", type=int, default=0, help="record index (negative counts from the end)")
+    p.set_defaults(func=cmd_preview)
+
+    imp = sub.add_parser("import", help="convert an external dataset into shards")
+    isub = imp.add_subparsers(dest="import_format", metavar="FORMAT", required=True)
+
+    a = isub.add_parser("authors-npz", help="the authors' npz files (one file = one record, T=1, V=S)")
+    a.add_argument("src", type=Path, help="an .npz file or a directory of them")
+    _import_common(a)
+    a.set_defaults(func=cmd_import_authors)
+
+    k = isub.add_parser("kitti", help="KITTI object (training/{image_2,velodyne,calib,label_2}, ImageSets)")
+    k.add_argument("src", type=Path, help="KITTI object root (holding training/ and ImageSets/)")
+    k.add_argument("--resize", type=int, nargs=2, metavar=("H", "W"), default=None,
+                   help="resample images (and render depth) at H×W so that all records share one size")
+    _import_common(k)
+    k.set_defaults(func=cmd_import_kitti)
+
+    t = isub.add_parser("tum", help="a TUM RGB-D sequence (rgb.txt, depth.txt, groundtruth.txt)")
+    t.add_argument("src", type=Path, help="sequence directory")
+    t.add_argument("--frames", type=_positive_int, default=2, help="time steps T per record")
+    t.add_argument("--frame-step", type=_positive_int, default=1, help="take every k-th associated frame")
+    t.add_argument("--stride", type=_positive_int, default=None,
+                   help="frames between record starts (default: T, non-overlapping)")
+    t.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"), default=None,
+                   help="pinhole intrinsics (default: freiburg1 517.3 516.5 318.6 255.3)")
+    t.add_argument("--max-dt", type=_positive_float, default=0.02,
+                   help="largest rgb/depth/pose timestamp gap, seconds")
+    _import_common(t)
+    t.set_defaults(func=cmd_import_tum)
+
+
+def _import_common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--out", required=True, type=Path, help="dataset directory to create")
+    p.add_argument("--split", choices=["train", "val"], default="train")
+    p.add_argument("--preset", choices=["tiny", "small", "paper"], default="paper",
+                   help="the map grid recorded in the manifest (default: paper)")
+    p.add_argument("--limit", type=_positive_int, default=None, help="import at most this many records")
+    p.add_argument("--shard-mb", type=_positive_float, default=256.0, help="target shard size in MB")
+    p.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    value = float(text)
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+    return value
+
+
+def _shard_bytes(mb: float) -> int:
+    return max(1, int(mb * (1 << 20)))
+
+
+class _Progress:
+    """A stderr progress bar (tqdm); closed before any error message is printed."""
+
+    def __init__(self, total: int | None, desc: str) -> None:
+        from tqdm import tqdm
+        self._bar = tqdm(total=total, desc=desc, unit="rec", file=sys.stderr, mininterval=0.5,
+                         dynamic_ncols=True)
+
+    def __call__(self, count: int, key: str) -> None:
+        self._bar.update(count - self._bar.n)
+
+    def __enter__(self) -> "_Progress":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._bar.close()
+
+
+# ----------------------------------------------------------------------------- generate
+
+def cmd_generate(args: argparse.Namespace) -> int:
+    from core.data.shards import write_dataset
+    from core.presets import get_preset
+    try:
+        from core.synthetic import generate_record
+    except ImportError:
+        raise N3dmapError("the synthetic generator (core.synthetic.generate_record) is not available "
+                       "in this build") from None
+
+    preset = get_preset(args.preset)
+    if args.episodes >= SEED_STRIDE:
+        raise DataError(f"--episodes must be below {SEED_STRIDE} (record seeds would overlap the next --seed)")
+
+    def records() -> Iterator[dict]:
+        for i in range(args.episodes):
+            moving = {"on": True, "off": False, "mixed": i % 2 == 1}[args.moving_ego]
+            yield generate_record(preset, seed=episode_seed(args.seed, i), num_views=args.views,
+                                  num_frames=args.frames, moving_ego=moving,
+                                  sparse_depth=args.sparse_depth, noise=args.noise)
+
+    generator = {
+        "source": "synthetic", "episodes": args.episodes,
+        "num_views": args.views or preset.num_views, "num_frames": args.frames or preset.num_frames,
+        "moving_ego": args.moving_ego, "sparse_depth": args.sparse_depth, "noise": args.noise,
+        "record_seed": f"seed*{SEED_STRIDE} + index",
+    }
+    with _Progress(args.episodes, f"generate {args.preset}") as progress:
+        manifest = write_dataset(args.out, records(), split=args.split, preset_name=preset.name,
+                                 grid=preset.grid.to_dict(), generator=generator, seed=args.seed,
+                                 shard_bytes=_shard_bytes(args.shard_mb), overwrite=args.overwrite,
+                                 on_record=progress)
+    _print_written(args.out, manifest)
+    return 0
+
+
+def _print_written(out: Path, manifest: dict) -> None:
+    total = sum(s["bytes"] for s in manifest["shards"])
+    print(f"wrote {manifest['num_records']} records in {len(manifest['shards'])} shards "
+          f"({_human_bytes(total)}) to {out}")
+
+
+# ----------------------------------------------------------------------------- info / preview
+
+def _human_bytes(n: int) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} GB"
+
+
+def _dims_text(dims: dict) -> str:
+    parts = []
+    for name in ("T", "V", "H", "W", "K"):
+        if name in dims:
+            lo, hi = dims[name]
+            parts.append(f"{name}={lo}" if lo == hi else f"{name}={lo}–{hi}")
+    return " ".join(parts)
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from core.data.shards import ShardDataset, load_manifest
+
+    manifest = load_manifest(args.dir)
+    if args.json:
+        summary = {k: v for k, v in manifest.items() if k != "shards"}
+        summary["shards"] = [{k: v for k, v in s.items() if k != "keys"} for s in manifest["shards"]]
+        print(json.dumps(summary, indent=1))
+    else:
+        total = sum(s["bytes"] for s in manifest["shards"])
+        grid = manifest.get("grid") or {}
+        print(f"dataset    {args.dir}  ({manifest['format']} v{manifest['schema_version']})")
+        print(f"split      {manifest.get('split')}")
+        print(f"preset     {manifest.get('preset')}")
+        print(f"records    {manifest['num_records']} in {len(manifest['shards'])} shards, {_human_bytes(total)}")
+        print(f"dims       {_dims_text(manifest.get('dims', {}))}")
+        if grid:
+            print(f"grid       Z×Y×X = {grid['Z']}×{grid['Y']}×{grid['X']} over x [{grid['xmin']}, {grid['xmax']}] "
+                  f"y [{grid['ymin']}, {grid['ymax']}] z [{grid['zmin']}, {grid['zmax']}] m")
+        generator = manifest.get("generator") or {}
+        print(f"generator  {' '.join(f'{k}={v}' for k, v in generator.items())}")
+        print(f"seed       {manifest.get('seed')}")
+        for s in manifest["shards"]:
+            print(f"  {s['filename']}  {s['num_records']:>6} records  {_human_bytes(s['bytes']):>10}  "
+                  f"sha256 {s['sha256'][:16]}")
+    if args.verify:
+        # Opening checks presence and sizes; verify() checks sha256 and decodes every record.
+        result = ShardDataset(args.dir).verify()
+        print(f"verified   {result['records']} records in {result['shards']} shards: "
+              "sha256 and record schema OK", file=sys.stdout)
+    return 0
+
+
+def cmd_preview(args: argparse.Namespace) -> int:
+    from core.data.shards import ShardDataset
+    from services.viz.preview import contact_sheet
+
+    ds = ShardDataset(args.dir)
+    n = len(ds)
+    if not -n <= args.index < n:
+        raise N3dmapError(f"--index {args.index} is out of range for {args.dir} ({n} records)")
+    record = ds[args.index]
+    key = ds.key(args.index)
+    title = f"{args.dir.name}: record {args.index % n} ({key}), preset {ds.manifest.get('preset')}, " \
+            f"split {ds.manifest.get('split')}"
+    out = contact_sheet(record, args.out, title=title, grid=ds.manifest.get("grid") or None)
+    print(f"wrote {out}")
+    return 0
+
+
+# ----------------------------------------------------------------------------- import
+
+def _run_import(args: argparse.Namespace, fn: Callable[..., dict], **options) -> int:
+    from core.presets import get_preset
+
+    preset = get_preset(args.preset)
+    with _Progress(args.limit, f"import {args.import_format}") as progress:
+        manifest = fn(args.src, args.out, split=args.split, preset_name=preset.name,
+                      grid=preset.grid.to_dict(), limit=args.limit, shard_bytes=_shard_bytes(args.shard_mb),
+                      overwrite=args.overwrite, on_record=progress, **options)
+    _print_written(args.out, manifest)
+    return 0
+
+
+def cmd_import_authors(args: argparse.Namespace) -> int:
+    from core.data.importers.authors_npz import import_authors_npz
+    return _run_import(args, import_authors_npz)
+
+
+def cmd_import_kitti(args: argparse.Namespace) -> int:
+    from core.data.importers.kitti import import_kitti
+    return _run_import(args, import_kitti, resize=tuple(args.resize) if args.resize else None)
+
+
+def cmd_import_tum(args: argparse.Namespace) -> int:
+    from core.data.importers.tum import DEFAULT_INTRINSICS, import_tum
+    return _run_import(args, import_tum, num_frames=args.frames, frame_step=args.frame_step,
+                       stride=args.stride, max_dt=args.max_dt,
+                       intrinsics=tuple(args.intrinsics) if args.intrinsics else DEFAULT_INTRINSICS)

@@ -1,0 +1,1 @@
+"""Plots of datasets and results (matplotlib, Agg canvas; never a GUI backend)."""
