@@ -1,0 +1,159 @@
+"""Moving-object pipeline pieces: components vs flood fill, box fit, saliency, NMS, end to end."""
+
+import itertools
+import math
+from collections import deque
+
+import numpy as np
+import pytest
+
+from core.eval.iou3d import iou_3d
+from core.geometry.grid import GridConfig
+from core.moving.boxfit import fit_box_to_voxels, min_area_rectangle
+from core.moving.components import component_indices, connected_components
+from core.moving.detect_moving import moving_objects_from_flow
+from core.moving.nms import nms_bev
+from core.moving.saliency import center_surround_score
+
+GRID = GridConfig(xmin=-8, xmax=8, ymin=-2, ymax=2, zmin=0, zmax=16, Z=32, Y=8, X=32)  # 0.5 m voxels
+
+
+def flood_fill_labels(mask, connectivity):
+    """Slow reference: breadth-first flood fill with explicit neighbour offsets."""
+    offsets = [d for d in itertools.product((-1, 0, 1), repeat=3)
+               if any(d) and sum(map(abs, d)) <= {6: 1, 18: 2, 26: 3}[connectivity]]
+    labels = np.zeros(mask.shape, dtype=int)
+    count = 0
+    for start in zip(*np.nonzero(mask)):
+        if labels[start]:
+            continue
+        count += 1
+        labels[start] = count
+        queue = deque([start])
+        while queue:
+            p = queue.popleft()
+            for d in offsets:
+                q = tuple(a + b for a, b in zip(p, d))
+                if all(0 <= c < s for c, s in zip(q, mask.shape)) and mask[q] and not labels[q]:
+                    labels[q] = count
+                    queue.append(q)
+    return labels, count
+
+
+@pytest.mark.parametrize("connectivity", [6, 18, 26])
+def test_components_match_flood_fill(connectivity):
+    rng = np.random.default_rng(connectivity)
+    mask = rng.random((7, 6, 8)) < 0.3
+    got, n = connected_components(mask, connectivity=connectivity)
+    ref, m = flood_fill_labels(mask, connectivity)
+    assert n == m
+    # Same partition up to renaming: the label pairs are in one-to-one correspondence.
+    pairs = set(zip(got[mask].tolist(), ref[mask].tolist()))
+    assert len(pairs) == n and len({a for a, _ in pairs}) == n and len({b for _, b in pairs}) == n
+    assert np.all((got == 0) == ~mask)
+    for k, zyx in enumerate(component_indices(got, n), start=1):
+        np.testing.assert_array_equal(zyx, np.argwhere(got == k))
+
+
+def brute_force_min_area(points, steps=3600):
+    """Slow reference: rectangle area at many orientations over [0, π/2)."""
+    best = np.inf
+    for a in np.arange(steps) * (math.pi / 2 / steps):
+        u = np.array([math.cos(a), math.sin(a)])
+        v = np.array([-u[1], u[0]])
+        best = min(best, np.ptp(points @ u) * np.ptp(points @ v))
+    return best
+
+
+def test_min_area_rectangle_beats_brute_force_and_contains_points():
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        pts = rng.normal(size=(40, 2)) * rng.uniform(0.3, 3, size=2) @ np.linalg.qr(rng.normal(size=(2, 2)))[0]
+        centre, axis, extent = min_area_rectangle(pts)
+        brute = brute_force_min_area(pts)
+        assert extent[0] * extent[1] <= brute + 1e-9
+        assert extent[0] * extent[1] >= brute * (1 - 1e-3)  # the sweep's grid is fine enough to get close
+        perp = np.array([-axis[1], axis[0]])
+        rel = pts - centre
+        assert np.all(np.abs(rel @ axis) <= extent[0] / 2 + 1e-9)
+        assert np.all(np.abs(rel @ perp) <= extent[1] / 2 + 1e-9)
+
+
+def voxelise_box(box, grid):
+    """Indices (z, y, x) of the voxels whose centres lie inside the canonical box."""
+    zz, yy, xx = np.meshgrid(np.arange(grid.Z), np.arange(grid.Y), np.arange(grid.X), indexing="ij")
+    centres = np.stack([xx, yy, zz], -1).reshape(-1, 3) * grid.voxel_size + np.array(grid.bounds_min) + grid.voxel_size / 2
+    c, s = math.cos(box[6]), math.sin(box[6])
+    R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    inside = np.all(np.abs((centres - box[:3]) @ R) <= box[3:6] / 2, axis=1)
+    return np.stack([zz.ravel(), yy.ravel(), xx.ravel()], -1)[inside], inside.reshape(grid.Z, grid.Y, grid.X)
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.4, -1.1, 1.5])
+def test_box_fit_recovers_rotated_box_within_a_voxel(yaw):
+    truth = np.array([1.3, 0.2, 8.1, 4.5, 1.6, 2.1, yaw])
+    zyx, _ = voxelise_box(truth, GRID)
+    fit = fit_box_to_voxels(zyx, GRID)
+    v = GRID.voxel_size
+    assert np.all(np.abs(fit[:3] - truth[:3]) <= v)
+    assert np.all(np.abs(fit[3:6] - truth[3:6]) <= v)
+    assert abs(math.remainder(fit[6] - yaw, math.pi)) < 0.25  # a box is the same under yaw + π
+    assert iou_3d(fit[None], truth[None])[0, 0] > 0.6
+
+
+def test_box_fit_puts_the_longer_side_first():
+    truth = np.array([0.0, 0.0, 8.0, 2.0, 1.0, 5.0, 0.3])  # given width > length
+    fit = fit_box_to_voxels(voxelise_box(truth, GRID)[0], GRID)
+    assert fit[3] > fit[5] and -math.pi / 2 <= fit[6] < math.pi / 2
+    assert iou_3d(fit[None], truth[None])[0, 0] > 0.6
+
+
+def test_nms_keeps_the_best_of_overlapping_boxes():
+    boxes = np.array([[0, 0, 5, 4, 2, 2, 0.0],
+                      [0.3, 0, 5.1, 4, 2, 2, 0.1],   # overlaps box 0 heavily, higher score
+                      [6, 0, 5, 4, 2, 2, 0.0],       # far away
+                      [0, 0, 5, 4, 2, 2, 1.5]])      # crosses box 1 at a right angle: IoU ≈ 1/3
+    scores = np.array([0.5, 0.9, 0.2, 0.4])
+    assert nms_bev(boxes, scores, 0.5).tolist() == [1, 3, 2]
+    assert nms_bev(boxes, scores, 0.2).tolist() == [1, 2]
+    assert nms_bev(np.zeros((0, 7)), np.zeros(0), 0.5).tolist() == []
+
+
+def test_center_surround_score_interior_moving_shell_static():
+    box = np.array([0.0, 0.0, 8.0, 3.0, 1.5, 2.0, 0.5])
+    _, inside = voxelise_box(box, GRID)
+    occupied = np.ones(GRID.shape_zyx, dtype=bool)
+    assert center_surround_score(inside, box, GRID, weight=occupied, shell_margin=1.0) == pytest.approx(1.0)
+    assert center_surround_score(np.ones(GRID.shape_zyx), box, GRID, weight=occupied, shell_margin=1.0) == pytest.approx(0.0)
+    assert center_surround_score(np.zeros(GRID.shape_zyx), box, GRID, shell_margin=1.0) == pytest.approx(0.0)
+
+
+def scene_with_block(box):
+    """Occupancy: a ground slab (bottom voxel row) plus the voxelised block."""
+    _, block = voxelise_box(box, GRID)
+    occupancy = block.astype(np.float32)
+    occupancy[:, -1, :] = 1.0
+    return block, occupancy
+
+
+def test_one_moving_rotated_block_gives_one_box_with_velocity():
+    truth = np.array([-1.2, 0.6, 7.4, 4.0, 1.5, 2.0, 0.6])
+    block, occupancy = scene_with_block(truth)
+    flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
+    flow[0][block], flow[2][block] = 1.2, -0.6                      # voxels per step along x and z
+    flow[:, ~occupancy.astype(bool)] = 0.3 * np.random.default_rng(0).standard_normal((3, int((occupancy == 0).sum())))
+    found = moving_objects_from_flow(flow, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1)
+    assert len(found) == 1
+    det = found[0]
+    assert iou_3d(det["box_ref"][None], truth[None])[0, 0] > 0.6
+    assert det["score"] == pytest.approx(1.0)
+    np.testing.assert_allclose(det["velocity_ref"], [1.2 * 0.5 / 0.1, 0.0, -0.6 * 0.5 / 0.1], atol=1e-6)
+    assert det["num_voxels"] == int(block.sum())
+
+
+def test_zero_flow_finds_nothing_and_noise_below_threshold_is_ignored():
+    _, occupancy = scene_with_block(np.array([0.0, 0.6, 8.0, 4.0, 1.5, 2.0, 0.2]))
+    zero = np.zeros((3,) + GRID.shape_zyx)
+    assert moving_objects_from_flow(zero, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1) == []
+    small = 0.2 * np.ones((3,) + GRID.shape_zyx)  # magnitude 0.35 < 0.5 everywhere
+    assert moving_objects_from_flow(small, None, GRID, threshold=0.5, min_voxels=5, dt=0.1) == []
