@@ -22,8 +22,8 @@ from core.errors import check_shape
 from core.geometry import se3
 from core.geometry.grid import GridConfig, mem_T_ref
 
-# Upper bound on B × rays × crossings held at once (≈ 32 MB per float32 temporary).
-_CHUNK_ELEMENTS = 8_000_000
+# Upper bound on B × rays × crossings held at once (the largest float32 temporary, B×n×crossings×3, is ≈ 24 MB).
+_CHUNK_ELEMENTS = 2_000_000
 
 
 def _crossing_params(origin: torch.Tensor, delta: torch.Tensor, size: int) -> torch.Tensor:
