@@ -8,7 +8,8 @@ picks classes by name, so they are ignored unless asked for).
 
 In memory boxes use the canonical encoding of DESIGN.md §2 in the `cam` frame: rows
 (x, y, z, lx, ly, lz, yaw) with the box CENTRE, lx = l, ly = h, lz = w, yaw = ry; the centre sits
-h/2 above the bottom, i.e. y_centre = y_bottom − h/2 because Y points down.
+h/2 above the bottom, i.e. y_centre = y_bottom − h/2 because Y points down. The conversion is
+core.geometry.boxes.kitti_to_boxes / boxes_to_kitti.
 """
 
 from __future__ import annotations
@@ -18,8 +19,10 @@ import os
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 
 from core.errors import DataError
+from core.geometry.boxes import boxes_to_kitti, kitti_to_boxes
 
 _GT_FIELDS = 15
 _PRED_FIELDS = 16
@@ -59,21 +62,16 @@ class FrameLabels:
                            alpha=self.alpha[keep], bbox2d=self.bbox2d[keep])
 
 
-def kitti_to_boxes(hwl: np.ndarray, bottom_xyz: np.ndarray, ry: np.ndarray) -> np.ndarray:
-    """KITTI (h, w, l) N×3, bottom centre N×3, ry N -> canonical boxes N×7 in the same camera frame."""
-    hwl = np.asarray(hwl, np.float64).reshape(-1, 3)
-    xyz = np.asarray(bottom_xyz, np.float64).reshape(-1, 3)
-    ry = np.asarray(ry, np.float64).reshape(-1)
-    centre = xyz - np.stack([np.zeros_like(ry), hwl[:, 0] / 2, np.zeros_like(ry)], axis=-1)  # N×3
-    return np.concatenate([centre, hwl[:, 2:3], hwl[:, 0:1], hwl[:, 1:2], ry[:, None]], axis=1)  # N×7
+def _kitti_rows_to_boxes(hwl: np.ndarray, bottom_xyz: np.ndarray, ry: np.ndarray) -> np.ndarray:
+    """KITTI (h, w, l) N×3, bottom centre N×3, ry N -> canonical boxes N×7 (float64) in the same frame."""
+    rows = np.concatenate([np.reshape(hwl, (-1, 3)), np.reshape(bottom_xyz, (-1, 3)), np.reshape(ry, (-1, 1))], 1)
+    return kitti_to_boxes(torch.from_numpy(rows.astype(np.float64))).numpy()  # N×7
 
 
-def boxes_to_kitti(boxes_cam: np.ndarray):
+def _boxes_to_kitti_rows(boxes_cam: np.ndarray):
     """Canonical boxes N×7 in a camera frame -> (hwl N×3, bottom centre N×3, ry N)."""
-    b = np.asarray(boxes_cam, np.float64).reshape(-1, 7)
-    hwl = np.stack([b[:, 4], b[:, 5], b[:, 3]], axis=-1)   # N×3
-    bottom = b[:, 0:3] + np.stack([np.zeros(len(b)), b[:, 4] / 2, np.zeros(len(b))], axis=-1)
-    return hwl, bottom, b[:, 6].copy()
+    rows = boxes_to_kitti(torch.from_numpy(np.asarray(boxes_cam, np.float64).reshape(-1, 7))).numpy()  # N×7
+    return rows[:, 0:3], rows[:, 3:6], rows[:, 6]
 
 
 def parse_label_line(line: str, *, where: str, require_score: bool):
@@ -114,7 +112,7 @@ def read_label_file(path: str, *, require_score: bool = False) -> FrameLabels:
     if any(has_score) and not all(has_score):
         lineno = has_score.index(False) + 1
         raise DataError(f"{path}: some rows have a score column and some do not (first without: row {lineno})")
-    return FrameLabels(types=list(types), boxes_cam=kitti_to_boxes(np.array(hwl), np.array(xyz), np.array(ry)),
+    return FrameLabels(types=list(types), boxes_cam=_kitti_rows_to_boxes(np.array(hwl), np.array(xyz), np.array(ry)),
                        scores=np.array(score, np.float64) if all(has_score) else None,
                        truncated=np.array(trunc), occluded=np.array(occ), alpha=np.array(alpha),
                        bbox2d=np.array(bbox2d))
@@ -122,7 +120,7 @@ def read_label_file(path: str, *, require_score: bool = False) -> FrameLabels:
 
 def write_label_file(path: str, labels: FrameLabels) -> None:
     """Write one `<frame>.txt` (with the score column when `labels.scores` is set)."""
-    hwl, bottom, ry = boxes_to_kitti(labels.boxes_cam)
+    hwl, bottom, ry = _boxes_to_kitti_rows(labels.boxes_cam)
     lines = []
     for i, kind in enumerate(labels.types):
         if any(c.isspace() for c in kind) or not kind:

@@ -4,19 +4,9 @@ import numpy as np
 import pytest
 
 from core.errors import DataError
-from core.eval.kitti_labels import (FrameLabels, boxes_to_kitti, kitti_to_boxes, read_label_dir,
-                                    read_label_file, write_label_file)
+from core.eval.kitti_labels import FrameLabels, read_label_dir, read_label_file, write_label_file
 
 GT_LINE = "Car 0.00 0 -1.58 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 1.71 46.70 -1.59\n"
-
-
-def test_bottom_centre_to_canonical_centre():
-    boxes = kitti_to_boxes(np.array([[1.65, 1.67, 3.64]]), np.array([[-0.65, 1.71, 46.70]]), np.array([-1.59]))
-    # Y points down: the centre is h/2 above the bottom; lx = l, ly = h, lz = w, yaw = ry.
-    np.testing.assert_allclose(boxes, [[-0.65, 1.71 - 0.825, 46.70, 3.64, 1.65, 1.67, -1.59]])
-    hwl, bottom, ry = boxes_to_kitti(boxes)
-    np.testing.assert_allclose(hwl, [[1.65, 1.67, 3.64]])
-    np.testing.assert_allclose(bottom, [[-0.65, 1.71, 46.70]])
 
 
 def test_read_real_kitti_line(tmp_path):
