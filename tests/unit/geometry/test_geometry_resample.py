@@ -104,6 +104,10 @@ def test_gradcheck_tiny_warps():
     vol = torch.randn(1, 1, 2, 2, 3, generator=g, dtype=D, requires_grad=True)
     b_T_a = se3.random_rigid(1, 0.2, 0.3, g, dtype=D)
     assert torch.autograd.gradcheck(lambda v: warp_rigid(v, b_T_a, grid), (vol,))
+    # the warp is differentiable w.r.t. the pose too (egomotion backpropagates through it)
+    rt = (torch.rand(1, 6, generator=g, dtype=D) * 0.2 + 0.05).requires_grad_(True)
+    warp_pose = lambda p: warp_rigid(vol.detach(), se3.from_rt(se3.axis_angle_to_matrix(p[:, :3]), p[:, 3:]), grid)
+    assert torch.autograd.gradcheck(warp_pose, (rt,))
     flow = (torch.rand(1, 3, 2, 2, 3, generator=g, dtype=D) * 0.8 + 0.1).requires_grad_(True)  # off integer kinks
     assert torch.autograd.gradcheck(warp_flow, (vol, flow))
 
