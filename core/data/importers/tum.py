@@ -1,0 +1,160 @@
+"""Importer for TUM RGB-D sequences (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats).
+
+A sequence directory holds
+    rgb.txt, depth.txt   lines `timestamp filename` ('#' comments), 640×480 PNGs
+    groundtruth.txt      lines `timestamp tx ty tz qx qy qz qw`: the colour camera's optical centre
+                         and orientation in the motion-capture world, i.e. world_T_cam
+Depth PNGs are uint16 holding metres × 5000 (0 = missing) and registered to the colour camera.
+
+Each rgb frame is associated with the nearest depth frame and the nearest pose within `max_dt`
+seconds (frames without both are skipped); every `frame_step`-th associated frame is kept, and records
+are windows of T consecutive kept frames starting every `stride` frames (default T). V = 1, K = 0.
+Frames: `world` = the motion-capture world of groundtruth.txt; `ref` = the record's first camera, so
+world_T_ref[t] = world_T_cam[0, 0] for every t.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Callable, Iterator, Mapping
+
+import numpy as np
+import torch
+
+from core.data.importers._common import read_depth_png, read_rgb, record_key, require_file, write_imported
+from core.data.record import empty_boxes
+from core.data.shards import DEFAULT_SHARD_BYTES
+from core.errors import DataError
+from core.geometry import se3
+
+# freiburg1 colour camera (fx, fy, cx, cy), from the dataset's calibration page.
+DEFAULT_INTRINSICS = (517.3, 516.5, 318.6, 255.3)
+DEPTH_SCALE = 5000.0
+
+
+def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
+    """`timestamp filename` lines -> (N float64 timestamps, N filenames), sorted by time."""
+    require_file(path, "TUM file list")
+    stamps, names = [], []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.split()
+        try:
+            stamps.append(float(fields[0]))
+        except ValueError:
+            raise DataError(f"{path}:{n}: bad timestamp {fields[0]!r}") from None
+        if len(fields) < 2:
+            raise DataError(f"{path}:{n}: expected `timestamp filename`")
+        names.append(fields[1])
+    order = np.argsort(stamps, kind="stable")
+    return np.asarray(stamps, np.float64)[order], [names[i] for i in order]
+
+
+def read_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """groundtruth.txt -> (N timestamps, N×4×4 world_T_cam float64), sorted by time."""
+    require_file(path, "TUM groundtruth.txt")
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.split()
+        if len(fields) != 8:
+            raise DataError(f"{path}:{n}: expected `timestamp tx ty tz qx qy qz qw`, got {len(fields)} fields")
+        try:
+            rows.append([float(v) for v in fields])
+        except ValueError:
+            raise DataError(f"{path}:{n}: non-numeric pose") from None
+    if not rows:
+        raise DataError(f"{path}: no poses")
+    data = np.array(rows, np.float64)
+    data = data[np.argsort(data[:, 0], kind="stable")]
+    t, (qx, qy, qz, qw) = data[:, 1:4], data[:, 4:8].T
+    if not np.isfinite(data).all() or (np.abs(np.sqrt(qx**2 + qy**2 + qz**2 + qw**2) - 1) > 1e-2).any():
+        raise DataError(f"{path}: poses must be finite with unit quaternions")
+    q_wxyz = torch.as_tensor(np.stack([qw, qx, qy, qz], axis=1))  # N×4, (w, x, y, z)
+    world_T_cam = se3.from_rt(se3.quaternion_to_matrix(q_wxyz), torch.as_tensor(t)).numpy()  # N×4×4
+    return data[:, 0], world_T_cam
+
+
+def nearest(stamps: np.ndarray, queries: np.ndarray, max_dt: float) -> np.ndarray:
+    """Index of the nearest entry of sorted `stamps` for each query, or -1 if farther than max_dt."""
+    if len(stamps) == 0:
+        return np.full(len(queries), -1)
+    right = np.clip(np.searchsorted(stamps, queries), 0, len(stamps) - 1)
+    left = np.clip(right - 1, 0, len(stamps) - 1)
+    pick = np.where(np.abs(stamps[left] - queries) <= np.abs(stamps[right] - queries), left, right)
+    return np.where(np.abs(stamps[pick] - queries) <= max_dt, pick, -1)
+
+
+def associate(root: Path, max_dt: float) -> list[tuple[float, str, str, np.ndarray]]:
+    """(rgb timestamp, rgb file, depth file, world_T_cam 4×4) of every rgb frame with a depth frame and a
+    pose within max_dt seconds, in time order."""
+    rgb_t, rgb_files = read_file_list(root / "rgb.txt")
+    depth_t, depth_files = read_file_list(root / "depth.txt")
+    pose_t, poses = read_groundtruth(root / "groundtruth.txt")
+    d_idx = nearest(depth_t, rgb_t, max_dt)
+    p_idx = nearest(pose_t, rgb_t, max_dt)
+    return [(float(rgb_t[i]), rgb_files[i], depth_files[d_idx[i]], poses[p_idx[i]])
+            for i in range(len(rgb_t)) if d_idx[i] >= 0 and p_idx[i] >= 0]
+
+
+def tum_window_to_record(root: Path, frames: list[tuple[float, str, str, np.ndarray]],
+                         pix_T_cam: np.ndarray) -> dict[str, np.ndarray]:
+    """T associated frames -> one record (V=1, K=0) with ref = the first camera."""
+    rgb = np.stack([read_rgb(root / f[1]) for f in frames])[:, None]                        # T×1×H×W×3
+    depth = np.stack([read_depth_png(root / f[2], DEPTH_SCALE) for f in frames])[:, None]  # T×1×H×W
+    if rgb.shape[2:4] != depth.shape[2:4]:
+        raise DataError(f"{root}: rgb {rgb.shape[2:4]} and depth {depth.shape[2:4]} sizes differ "
+                        f"(frame {frames[0][1]})")
+    world_T_cam = np.stack([f[3] for f in frames])[:, None]                               # T×1×4×4
+    T = len(frames)
+    return {
+        "rgb": rgb,
+        "depth": depth,
+        "pix_T_cam": pix_T_cam[None].astype(np.float32),                                   # 1×4×4
+        "world_T_cam": world_T_cam.astype(np.float32),
+        "world_T_ref": np.repeat(world_T_cam[:1, 0], T, axis=0).astype(np.float32),        # T×4×4
+        **empty_boxes(T),
+    }
+
+
+def import_tum(src: str | os.PathLike, out_dir: str | os.PathLike, *, num_frames: int = 2,
+               frame_step: int = 1, stride: int | None = None,
+               intrinsics: tuple[float, float, float, float] = DEFAULT_INTRINSICS, max_dt: float = 0.02,
+               split: str = "train", preset_name: str = "paper", grid: Mapping | None = None,
+               limit: int | None = None, shard_bytes: int = DEFAULT_SHARD_BYTES, overwrite: bool = False,
+               on_record: Callable[[int, str], None] | None = None) -> dict:
+    """Convert one TUM RGB-D sequence directory into a dataset of T=num_frames windows."""
+    root = Path(src)
+    if not root.is_dir():
+        raise DataError(f"TUM sequence directory {root} does not exist")
+    if num_frames < 1 or frame_step < 1 or (stride is not None and stride < 1):
+        raise DataError("num_frames, frame_step and stride must be at least 1")
+    stride = stride or num_frames
+    frames = associate(root, max_dt)[::frame_step]
+    if len(frames) < num_frames:
+        raise DataError(f"{root}: only {len(frames)} associated rgb/depth/pose frames "
+                        f"(within {max_dt} s), fewer than T={num_frames}")
+    fx, fy, cx, cy = intrinsics
+    pix_T_cam = np.eye(4)
+    pix_T_cam[0, 0], pix_T_cam[1, 1], pix_T_cam[0, 2], pix_T_cam[1, 2] = fx, fy, cx, cy
+    starts = range(0, len(frames) - num_frames + 1, stride)
+    sequence = record_key(root.resolve().name)
+
+    def records() -> Iterator[dict]:
+        for start in starts:
+            rec = tum_window_to_record(root, frames[start:start + num_frames], pix_T_cam)
+            rec["__key__"] = f"{sequence}-{start:06d}"
+            yield rec
+
+    generator = {"source": "tum", "src": str(root.resolve()), "num_frames": num_frames,
+                 "frame_step": frame_step, "stride": stride, "intrinsics": list(intrinsics),
+                 "max_dt": max_dt, "associated_frames": len(frames),
+                 "frame": "world = mocap world; ref = first camera of each record"}
+    return write_imported(out_dir, records(), split=split, preset_name=preset_name, grid=grid,
+                          generator=generator, limit=limit, shard_bytes=shard_bytes, overwrite=overwrite,
+                          on_record=on_record)
