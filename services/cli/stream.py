@@ -1,0 +1,162 @@
+"""`n3dmap stream bridge|camera|listen`: live RGB-D over zenoh (DESIGN.md §7)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+
+from services.streaming.session import add_zenoh_arguments, options_from_args
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "stream", help="live RGB-D over zenoh: bridge, simulated camera, listener",
+        description="Stream RGB-D frames over zenoh into the bridge (egomotion → stabilised 3D flow → moving "
+                    "objects) and receive its detections. Embedded default: peer mode on loopback, the bridge "
+                    "listening on tcp/127.0.0.1:7447; deployment: --mode client --connect tcp/ROUTER:7447.")
+    sub = parser.add_subparsers(dest="stream_command", metavar="STREAM_COMMAND", required=True)
+
+    bridge = sub.add_parser("bridge", help="run the stream bridge over a model bundle",
+                            description="Subscribe to n3dmap/<camera>/rgbd, publish n3dmap/<camera>/moving_objects "
+                                        "and n3dmap/<camera>/egomotion; status JSON at n3dmap/@bridge/<id>/status.")
+    bridge.add_argument("--bundle", required=True, help="model bundle directory (needs the mapper and flow modules)")
+    add_zenoh_arguments(bridge, default_listen=True)
+    bridge.add_argument("--cameras", default="*", metavar="PATTERN", help="glob of camera ids to serve (default: all)")
+    bridge.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default)")
+    bridge.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
+    bridge.add_argument("--min-score", type=float, default=0.0, help="drop boxes scored below this")
+    bridge.add_argument("--bridge-id", default=None, help="id in the liveliness token and status key (default: random)")
+    bridge.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="stop after S seconds (default: run until SIGINT/SIGTERM)")
+    bridge.add_argument("--status-every", type=float, default=10.0, metavar="S",
+                        help="log the accounting every S seconds (0 = never)")
+    bridge.set_defaults(func=_run_bridge)
+
+    camera = sub.add_parser("camera", help="publish frames from a dataset or the live synthetic world",
+                            description="Publish n3dmap.v1.Frame messages on n3dmap/<camera>/rgbd.")
+    camera.add_argument("--camera-id", required=True, help="camera id (a key-expression chunk: no '/', '*', '?', '#')")
+    source = camera.add_mutually_exclusive_group(required=True)
+    source.add_argument("--data", metavar="DIR", help="replay view --view of every record of a shard dataset")
+    source.add_argument("--synthetic", action="store_true", help="render the synthetic world live")
+    camera.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="frames per second (default 10)")
+    camera.add_argument("--frames", type=int, default=None, metavar="N", help="stop after N frames (default: endless)")
+    camera.add_argument("--preset", default="tiny", help="synthetic: preset of the rendered frames (default tiny)")
+    camera.add_argument("--seed", type=int, default=0, help="synthetic: first scene seed")
+    camera.add_argument("--episode-frames", type=int, default=8, help="synthetic: frames per scene before a new one")
+    camera.add_argument("--moving-ego", action="store_true", help="synthetic: the ego (and camera) moves")
+    camera.add_argument("--view", type=int, default=0, help="dataset: which view of each record to publish")
+    camera.add_argument("--loop", action="store_true", help="dataset: start over at the end")
+    camera.add_argument("--encoding", choices=("raw", "png"), default="raw", help="image encoding (default raw)")
+    camera.add_argument("--wait-for-bridge", type=float, default=10.0, metavar="S",
+                        help="wait up to S seconds for a bridge before the first frame")
+    add_zenoh_arguments(camera, default_listen=False)
+    camera.set_defaults(func=_run_camera)
+
+    listen = sub.add_parser("listen", help="print moving-object detections as they arrive")
+    listen.add_argument("--camera-id", default="*", help="camera to listen to (default: every camera)")
+    listen.add_argument("--json", action="store_true", help="one JSON object per line")
+    listen.add_argument("--count", type=int, default=None, metavar="N", help="exit after N messages")
+    listen.add_argument("--timeout", type=float, default=None, metavar="S", help="exit after S seconds of silence")
+    add_zenoh_arguments(listen, default_listen=False)
+    listen.set_defaults(func=_run_listen)
+
+
+def _check_camera_id(camera_id: str) -> None:
+    from services.cli.main import CliError
+
+    if not camera_id or any(c in camera_id for c in "/*?#$ "):
+        raise CliError(f"--camera-id {camera_id!r} must be a single key chunk without '/', '*', '?', '#', '$' or spaces")
+
+
+def _stop_event() -> threading.Event:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def _run_bridge(args: argparse.Namespace) -> int:
+    from services.cli.main import CliError
+    from services.inference.runtime import Runtime, RuntimeConfig
+    from services.streaming.bridge import Bridge
+    from services.streaming.processor import RuntimeProcessor
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
+    options = _zenoh_options(args, default_listen=True)
+    runtime = Runtime(RuntimeConfig(bundle_dir=args.bundle, device=args.device, num_threads=args.threads))
+    try:
+        processor = RuntimeProcessor(runtime, min_score=args.min_score)
+    except ValueError as e:
+        raise CliError(str(e)) from None
+    stop = _stop_event()
+    bridge = Bridge(processor=processor, zenoh_options=options, cameras=args.cameras, bridge_id=args.bridge_id)
+    bridge.start()
+    print(f"bridge {bridge.bridge_id} ready: bundle {runtime.version}, modules {', '.join(runtime.modules)}, "
+          f"zenoh {options.mode} listen={list(options.listen)} connect={list(options.connect)}", file=sys.stderr, flush=True)
+    started = time.monotonic()
+    last_status = started
+    try:
+        while not stop.is_set():
+            if args.duration is not None and time.monotonic() - started >= args.duration:
+                break
+            stop.wait(0.2)
+            if args.status_every and time.monotonic() - last_status >= args.status_every:
+                last_status = time.monotonic()
+                print(json.dumps({"status": bridge.status()}), file=sys.stderr, flush=True)
+    finally:
+        bridge.stop()
+        print(json.dumps({"final_status": bridge.status()}), flush=True)
+    return 0
+
+
+def _run_camera(args: argparse.Namespace) -> int:
+    from services.streaming.camera import publish_frames
+    from services.streaming.sources import dataset_frames, synthetic_frames
+
+    _check_camera_id(args.camera_id)
+    options = _zenoh_options(args, default_listen=False)
+    if args.synthetic:
+        from core.presets import get_preset
+        get_preset(args.preset)  # a bad name is a one-line error before anything starts
+        frames = synthetic_frames(preset_name=args.preset, seed=args.seed, frames_per_episode=args.episode_frames,
+                                  moving_ego=args.moving_ego)
+    else:
+        frames = dataset_frames(args.data, view=args.view, loop=args.loop)
+    stop = _stop_event()
+    sent = publish_frames(_until(frames, stop), camera_id=args.camera_id, zenoh_options=options, rate_hz=args.rate,
+                          max_frames=args.frames, encoding=args.encoding, wait_for_bridge_s=args.wait_for_bridge)
+    print(f"camera {args.camera_id}: published {sent} frames", file=sys.stderr, flush=True)
+    return 0
+
+
+def _until(frames, stop: threading.Event):
+    for frame in frames:
+        if stop.is_set():
+            return
+        yield frame
+
+
+def _run_listen(args: argparse.Namespace) -> int:
+    from services.streaming.listener import listen, print_human, print_json
+
+    if args.camera_id != "*":
+        _check_camera_id(args.camera_id)
+    options = _zenoh_options(args, default_listen=False)
+    count = listen(zenoh_options=options, camera_id=args.camera_id, max_messages=args.count,
+                   timeout_s=args.timeout, emit=print_json if args.json else print_human)
+    print(f"listener: received {count} detection messages", file=sys.stderr, flush=True)
+    return 0
+
+
+def _zenoh_options(args, *, default_listen: bool):
+    from services.cli.main import CliError
+
+    try:
+        return options_from_args(args, default_listen=default_listen)
+    except ValueError as e:
+        raise CliError(str(e)) from None
