@@ -62,7 +62,8 @@ def contact_sheet(record: Mapping[str, np.ndarray], out_path: str | Path, *, tit
 
     Rows: views v = 0..V-1. Columns: RGB t=0, depth t=0, RGB t=T-1, depth t=T-1 (the last two only
     when T > 1), and a bird's-eye view spanning all rows: depth points of t=0 (grey), box footprints
-    at t=0 (moving boxes red, with an arrow to their centre at t+1), camera centres and viewing
+    at t=0 (moving boxes red, with an arrow to their centre and a dashed footprint at t+1), camera
+    centres and viewing
     directions, and the map grid's x/z bounds when `grid` (GridConfig.to_dict()) is given.
     """
     rgb, depth = record["rgb"], record["depth"]                  # T×V×H×W×3, T×V×H×W
@@ -112,10 +113,12 @@ def _draw_bev(ax, record: Mapping[str, np.ndarray], grid: Mapping | None) -> Non
         xyz_cam = _depth_points(record["depth"][0, v], record["pix_T_cam"][v], rng)
         xyz_ref = xyz_cam @ ref0_T_cam[:3, :3].T + ref0_T_cam[:3, 3]   # N×3
         ax.scatter(xyz_ref[:, 0], xyz_ref[:, 2], s=0.3, c="0.6", linewidths=0)
+    centres_xz = []
     for v in range(V):
         ref0_T_cam = ref0_T_world @ record["world_T_cam"][0, v]
         centre, forward = ref0_T_cam[:3, 3], ref0_T_cam[:3, 2]
-        ax.plot(centre[0], centre[2], marker="^", color="tab:blue", ms=6)
+        centres_xz.append(centre[[0, 2]])
+        ax.plot(centre[0], centre[2], marker="o", color="tab:blue", ms=4)
         ax.plot([centre[0], centre[0] + 2.0 * forward[0]], [centre[2], centre[2] + 2.0 * forward[2]],
                 color="tab:blue", lw=1)
         ax.annotate(f"cam{v}", (centre[0], centre[2]), fontsize=7, color="tab:blue",
@@ -132,13 +135,25 @@ def _draw_bev(ax, record: Mapping[str, np.ndarray], grid: Mapping | None) -> Non
         ax.annotate(str(int(ids[k])), (boxes0[k, 0], boxes0[k, 2]), fontsize=7, color=color, ha="center")
         if moving[k] and boxes1 is not None and valid[1, k]:
             start, end = boxes0[k, [0, 2]], boxes1[k, [0, 2]]
+            ax.add_patch(Polygon(bev_footprint(boxes1[k]), closed=True, fill=False, edgecolor=color,
+                                 lw=0.8, ls="--"))
             ax.annotate("", xy=end, xytext=start,
                         arrowprops=dict(arrowstyle="->", color="tab:red", lw=1.2))
     if grid is not None:
         ax.add_patch(Rectangle((grid["xmin"], grid["zmin"]), grid["xmax"] - grid["xmin"],
                                grid["zmax"] - grid["zmin"], fill=False, ls="--", edgecolor="0.3", lw=0.8))
-    ax.set_aspect("equal", adjustable="datalim")
+    # Frame the grid, the cameras and the boxes; far depth points (sky, distant walls) would shrink them.
+    extent = [(xz[0], xz[1]) for xz in centres_xz]
+    extent += [tuple(c) for k in range(boxes0.shape[0]) if valid[0, k] for c in bev_footprint(boxes0[k])]
+    if grid is not None:
+        extent += [(grid["xmin"], grid["zmin"]), (grid["xmax"], grid["zmax"])]
+    if extent:
+        pts = np.array(extent, np.float64)
+        lo, hi = pts.min(axis=0) - 3.0, pts.max(axis=0) + 3.0
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal", adjustable="box")
     ax.set_xlabel("ref x (m, right)")
     ax.set_ylabel("ref z (m, forward)")
-    ax.set_title("bird's-eye view, ref at t=0\n(green static, red moving → t+1; ▲ cameras)", fontsize=8)
+    ax.set_title("bird's-eye view, ref at t=0\n(green static, red moving, dashed at t+1; ● cameras, line = forward)", fontsize=8)
     ax.grid(True, lw=0.3)
