@@ -1,0 +1,156 @@
+"""Egomotion: coarse-to-fine 6-DoF alignment of two unregistered 3D input volumes (paper appendix).
+
+Conventions (DESIGN.md §2): poses are 4×4 `a_T_b` (p_a = a_T_b @ p_b); volumes B×C×Z×Y×X on the map grid.
+The REFERENCE volume lives in `ref0` (the map frame at t0), the QUERY volume in `ref1` (at t1); the
+module estimates `ref0_T_ref1`. Warping the query into ref0 is `warp_rigid(query, ref1_T_ref0, grid)`.
+
+Per scale s (coarse to fine, each an average-pooled copy of the module's OWN features):
+1. candidates: the current estimate E (ref0_T_ref1) left-composed with each candidate rotation R_i about
+   the ref0 origin, E_i = R_i · E;
+2. the ORIGINAL pooled query features are warped ONCE by each composed candidate (inverse-compositional:
+   never a warped volume again, so interpolation error does not accumulate);
+3. a 3D cross-correlation cost volume against the reference over displacements within ±radius voxels,
+   averaged over space -> one score per (rotation, displacement), standardised per example;
+4. a small MLP maps the scores to a 6-DoF update δ = (ω rad axis-angle, t metres) expressed in ref0;
+   E ← exp(δ) · E.
+The estimate entering a scale is detached (each scale is supervised on its own; the gradient does not
+run back through the sampling coordinates into coarser scales). The last layer of every MLP starts at
+zero, so an untrained module predicts the identity.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from core.errors import check_shape
+from core.geometry import se3
+from core.geometry.grid import GridConfig
+from core.geometry.resample import warp_rigid
+from core.models.cost_volume import cross_correlation_3d
+from core.models.egomotion_rotations import candidate_rotations
+from core.models.encoder3d import Encoder3D
+
+
+def default_scales(grid: GridConfig) -> tuple[float, ...]:
+    """Quarter and half resolution (full resolution costs 8× more for little gain on a 2-scale MLP), unless
+    the grid is so thin along Y (the thinnest axis) that a quarter would leave fewer than 2 voxels."""
+    return (0.25, 0.5) if grid.Y >= 8 else (0.5, 1.0)
+
+
+def pool_to(vol: torch.Tensor, grid: GridConfig) -> torch.Tensor:
+    """Average-pool B×C×Z×Y×X to the grid's counts (identity when they already match)."""
+    if tuple(vol.shape[-3:]) == grid.shape_zyx:
+        return vol
+    return F.adaptive_avg_pool3d(vol, grid.shape_zyx)  # B×C×Zs×Ys×Xs
+
+
+def se3_exp_update(delta: torch.Tensor) -> torch.Tensor:
+    """δ: B×6 (axis-angle radians, translation metres) -> B×4×4 [exp(ω) | t]."""
+    return se3.from_rt(se3.axis_angle_to_matrix(delta[:, :3]), delta[:, 3:])
+
+
+class EgomotionNet(nn.Module):
+    """Two 4-channel input volumes (ref0 and ref1) -> `ref0_T_ref1` per scale."""
+
+    def __init__(self, *, grid: GridConfig | dict, in_channels: int = 4, width: int = 8,
+                 feature_dim: int = 16, scales: tuple[float, ...] | None = None,
+                 rotation_steps_deg: tuple[tuple[float, float, float], ...] | None = None,
+                 rotation_counts: tuple[int, int, int] = (3, 3, 3),
+                 radius: tuple[int, int, int] = (2, 1, 2), hidden: int = 128) -> None:
+        super().__init__()
+        self.grid = grid if isinstance(grid, GridConfig) else GridConfig.from_dict(grid)
+        self.scales = tuple(scales) if scales is not None else default_scales(self.grid)
+        if len(self.scales) < 1:
+            raise ValueError("EgomotionNet: need at least one scale")
+        # Coarse scales look for larger rotations; yaw (about Y, down) gets twice the step of pitch/roll.
+        if rotation_steps_deg is None:
+            rotation_steps_deg = tuple((2.0 / 2 ** i, 4.0 / 2 ** i, 2.0 / 2 ** i) for i in range(len(self.scales)))
+        if len(rotation_steps_deg) != len(self.scales):
+            raise ValueError("EgomotionNet: one rotation step triple per scale")
+        self.rotation_steps_deg = tuple(tuple(float(v) for v in s) for s in rotation_steps_deg)
+        self.rotation_counts = tuple(int(n) for n in rotation_counts)
+        self.radius = tuple(int(r) for r in radius)
+        self.in_channels, self.width, self.feature_dim, self.hidden = in_channels, width, feature_dim, hidden
+        self.encoder = Encoder3D(in_channels=in_channels, width=width, out_channels=feature_dim)
+        n_rot = self.rotation_counts[0] * self.rotation_counts[1] * self.rotation_counts[2]
+        n_disp = (2 * self.radius[0] + 1) * (2 * self.radius[1] + 1) * (2 * self.radius[2] + 1)
+        self.heads = nn.ModuleList()
+        for _ in self.scales:
+            head = nn.Sequential(nn.Linear(n_rot * n_disp, hidden), nn.LeakyReLU(0.1),
+                                 nn.Linear(hidden, hidden), nn.LeakyReLU(0.1), nn.Linear(hidden, 6))
+            nn.init.zeros_(head[-1].weight)
+            nn.init.zeros_(head[-1].bias)
+            self.heads.append(head)
+        for i, steps in enumerate(self.rotation_steps_deg):
+            self.register_buffer(f"candidates_{i}", candidate_rotations(steps, self.rotation_counts),
+                                 persistent=False)
+
+    def config(self) -> dict:
+        return {"grid": self.grid.to_dict(), "in_channels": self.in_channels, "width": self.width,
+                "feature_dim": self.feature_dim, "scales": list(self.scales),
+                "rotation_steps_deg": [list(s) for s in self.rotation_steps_deg],
+                "rotation_counts": list(self.rotation_counts), "radius": list(self.radius),
+                "hidden": self.hidden}
+
+    def scale_grid(self, scale: float) -> GridConfig:
+        return self.grid if scale == 1.0 else self.grid.scaled(scale)
+
+    def warp_query(self, query: torch.Tensor, ref0_T_ref1: torch.Tensor, grid: GridConfig) -> torch.Tensor:
+        """Warp the query volume (ref1) into ref0: query B×C×Z×Y×X, ref0_T_ref1 B×4×4 -> B×C×Z×Y×X."""
+        return warp_rigid(query, se3.invert(ref0_T_ref1), grid)
+
+    def scores(self, reference: torch.Tensor, query: torch.Tensor, estimate: torch.Tensor,
+               candidates: torch.Tensor, grid: GridConfig) -> torch.Tensor:
+        """Alignment score of every (candidate rotation, displacement) at one scale.
+
+        reference, query: B×C×Zs×Ys×Xs (query = the ORIGINAL pooled ref1 features), estimate: B×4×4,
+        candidates: R×4×4 -> B×(R·D) standardised scores.
+        """
+        B, C = reference.shape[:2]
+        R = candidates.shape[0]
+        composed = candidates.unsqueeze(0) @ estimate.unsqueeze(1)  # B×R×4×4: R_i · E
+        q = query.unsqueeze(1).expand(B, R, *query.shape[1:]).reshape(B * R, *query.shape[1:])  # (B·R)×C×Zs×Ys×Xs
+        warped = self.warp_query(q, composed.reshape(B * R, 4, 4), grid)  # (B·R)×C×Zs×Ys×Xs
+        ref = reference.unsqueeze(1).expand_as(warped.reshape(B, R, *warped.shape[1:]))
+        ref = ref.reshape(B * R, *reference.shape[1:])  # (B·R)×C×Zs×Ys×Xs
+        cost = cross_correlation_3d(ref, warped, self.radius)  # (B·R)×D×Zs×Ys×Xs
+        s = cost.mean(dim=(2, 3, 4)).reshape(B, -1)  # B×(R·D)
+        return (s - s.mean(1, keepdim=True)) / (s.std(1, keepdim=True) + 1e-6)
+
+    def forward(self, reference_input: torch.Tensor, query_input: torch.Tensor) -> dict[str, torch.Tensor]:
+        """reference_input (ref0), query_input (ref1): B×Cin×Z×Y×X input volumes.
+
+        Returns `ref0_T_ref1` B×4×4 (final) and `per_scale` S×B×4×4 (estimate after each scale).
+        """
+        check_shape("reference_input", reference_input, (None, self.in_channels, *self.grid.shape_zyx))
+        check_shape("query_input", query_input, tuple(reference_input.shape))
+        B = reference_input.shape[0]
+        feats = self.encoder(torch.cat([reference_input, query_input], dim=0))  # 2B×F×Z×Y×X
+        ref_feat, query_feat = feats[:B], feats[B:]
+        estimate = torch.eye(4, dtype=feats.dtype, device=feats.device).expand(B, 4, 4)
+        per_scale = []
+        for i, (scale, head) in enumerate(zip(self.scales, self.heads)):
+            grid_s = self.scale_grid(scale)
+            ref_s, query_s = pool_to(ref_feat, grid_s), pool_to(query_feat, grid_s)
+            candidates = getattr(self, f"candidates_{i}").to(feats.dtype)
+            scores = self.scores(ref_s, query_s, estimate.detach(), candidates, grid_s)
+            delta = head(scores)  # B×6
+            estimate = se3_exp_update(delta) @ estimate.detach()  # B×4×4
+            per_scale.append(estimate)
+        return {"ref0_T_ref1": estimate, "per_scale": torch.stack(per_scale, dim=0)}
+
+
+def pose_loss(est_T: torch.Tensor, gt_T: torch.Tensor, *, rotation_weight: float = 10.0) -> dict[str, torch.Tensor]:
+    """Supervised egomotion loss on `ref0_T_ref1` (both B×4×4, frame ref0).
+
+    rotation: chordal ‖R_est − R_gt‖_F / √2 (= 2·sin(θ/2)·… ≈ θ radians for small θ, with a smooth
+    gradient at 0 unlike acos); translation: ‖t_est − t_gt‖₁ metres in ref0. Returns `loss` =
+    rotation_weight·rotation + translation and both parts (means over B).
+    """
+    R_e, t_e = se3.split_rt(est_T)
+    R_g, t_g = se3.split_rt(gt_T)
+    rot = (R_e - R_g).flatten(1).norm(dim=1) / (2.0 ** 0.5)
+    trans = (t_e - t_g).abs().sum(dim=1)
+    return {"loss": rotation_weight * rot.mean() + trans.mean(), "rotation": rot.mean(), "translation": trans.mean()}

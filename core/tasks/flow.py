@@ -1,0 +1,114 @@
+"""3D imagination flow training step over frozen mapper features (paper §3.3 and appendix).
+
+Per step, at a random t with t+1 available:
+  F0 = map of time t in ref_t; F1 = map of time t+1 lifted straight into ref_t with the record poses
+  (egomotion-stabilised by re-unprojection, no resampling). The mapper is frozen (no gradient, eval
+  mode): the paper trains flow over frozen features, and the warp loss would otherwise collapse them.
+Losses:
+  synthetic  — F0 moved by a random rigid motion (equal thirds large ±6°/±1 m, small ±1°/±0.1 m, zero;
+               core.models.flow_synthetic); L1 between predicted and true flow at every level
+               (true flow average-pooled to the level), finest level weight 1, each coarser half;
+  warp       — mean over voxels of Σ_c |F0 − warp_flow(F1, flow(F0, F1))| (3D feature constancy);
+  smooth     — mean |∇flow| of the real-pair flow (forward differences along x, y, z).
+loss = synthetic + warp_weight·warp + smooth_weight·smooth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from core.errors import ShapeError
+from core.geometry import se3
+from core.geometry.grid import GridConfig
+from core.geometry.resample import warp_flow, warp_rigid
+from core.models.flow3d import Flow3D, downsample_flow
+from core.models.flow_synthetic import rigid_flow, sample_motions
+from core.models.latent_map import Mapper
+from core.presets import Preset
+from core.tasks.poses import cam_T_ref
+
+
+@dataclass(frozen=True)
+class FlowTaskConfig:
+    grid: GridConfig
+    feature_dim: int = 32
+    encoder_width: int = 64
+    channels: int = 16
+    levels: int = 3
+    warp_weight: float = 1.0
+    smooth_weight: float = 0.05
+    seed: int | None = None
+
+
+def smoothness(flow: torch.Tensor) -> torch.Tensor:
+    """flow B×3×Z×Y×X -> mean absolute forward difference over the three axes (scalar)."""
+    dz = (flow[:, :, 1:] - flow[:, :, :-1]).abs().mean()
+    dy = (flow[:, :, :, 1:] - flow[:, :, :, :-1]).abs().mean()
+    dx = (flow[..., 1:] - flow[..., :-1]).abs().mean()
+    return (dx + dy + dz) / 3.0
+
+
+def multilevel_l1(levels: list[torch.Tensor], gt: torch.Tensor) -> torch.Tensor:
+    """Per-level flows (coarse first) vs full-res gt B×3×Z×Y×X: Σ_l w_l · mean L1 (w = 1 finest, ½ per level up)."""
+    total = gt.new_zeros(())
+    n = len(levels)
+    for i, flow in enumerate(levels):
+        target = downsample_flow(gt, tuple(flow.shape[-3:]))
+        total = total + 0.5 ** (n - 1 - i) * (flow - target).abs().sum(1).mean()
+    return total
+
+
+class FlowTask(nn.Module):
+    def __init__(self, *, config: FlowTaskConfig) -> None:
+        super().__init__()
+        self.cfg = config
+        self.mapper = Mapper(grid=config.grid, width=config.encoder_width, feature_dim=config.feature_dim)
+        self.mapper.requires_grad_(False)
+        self.flow = Flow3D(in_channels=config.feature_dim, channels=config.channels, levels=config.levels)
+        self._generator = torch.Generator().manual_seed(config.seed) if config.seed is not None else None
+
+    @staticmethod
+    def from_preset(preset: Preset, **overrides) -> "FlowTask":
+        base = dict(grid=preset.grid, feature_dim=preset.feature_dim, encoder_width=preset.encoder_width)
+        base.update(overrides)
+        return FlowTask(config=FlowTaskConfig(**base))
+
+    def exported_modules(self) -> dict[str, nn.Module]:
+        return {"mapper": self.mapper, "flow": self.flow}
+
+    def train(self, mode: bool = True) -> "FlowTask":
+        super().train(mode)
+        self.mapper.eval()  # frozen features: BatchNorm keeps the loaded statistics
+        return self
+
+    @torch.no_grad()
+    def stabilised_maps(self, batch: dict[str, torch.Tensor], t: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Maps of t and t+1, both in ref_t: B×F×Z×Y×X each."""
+        rgb, depth, pix = batch["rgb"], batch["depth"], batch["pix_T_cam"]
+        f0 = self.mapper(rgb[:, t], depth[:, t], pix, cam_T_ref(batch, t, t))
+        f1 = self.mapper(rgb[:, t + 1], depth[:, t + 1], pix, cam_T_ref(batch, t + 1, t))
+        return f0, f1
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        B, T = batch["rgb"].shape[:2]
+        if T < 2:
+            raise ShapeError(f"flow training needs records with at least 2 time steps, got T={T}")
+        t = int(torch.randint(T - 1, (1,), generator=self._generator))
+        f0, f1 = self.stabilised_maps(batch, t)
+        g = self.cfg.grid
+        motion, _ = sample_motions(B, generator=self._generator, dtype=f0.dtype, device=f0.device)
+        moved = warp_rigid(f0, se3.invert(motion), g)  # B×F×Z×Y×X: f0 after the scene moved by `motion`
+        synth = self.flow(f0, moved)
+        gt = rigid_flow(motion, g)
+        loss_synth = multilevel_l1(synth["levels"], gt)
+        real = self.flow(f0, f1)
+        loss_warp = (f0 - warp_flow(f1, real["flow"])).abs().sum(1).mean()
+        loss_smooth = smoothness(real["flow"])
+        loss = loss_synth + self.cfg.warp_weight * loss_warp + self.cfg.smooth_weight * loss_smooth
+        synth_epe = (synth["flow"].detach() - gt).norm(dim=1).mean()
+        return {"loss": loss, "loss_synth": loss_synth.detach(), "loss_warp": loss_warp.detach(),
+                "loss_smooth": loss_smooth.detach(), "synth_epe": synth_epe,
+                "real_flow_mag": real["flow"].detach().norm(dim=1).mean()}
