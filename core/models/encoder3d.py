@@ -1,0 +1,65 @@
+"""3D encoder-decoder with skips: the feature extractor of the neural 3D mapper (paper appendix).
+
+Layers in kernel-stride-channels notation (C = `width`, F = `out_channels`):
+    4-2-C, 4-2-2C, 4-2-4C,          encoder (three stride-2 convs)
+    4-0.5-2C  ++ skip(2C),           decoder (transposed convs, then concat the encoder map of
+    4-0.5-C   ++ skip(C),            the same resolution)
+    1-1-F                            output
+Every conv except the last is followed by LeakyReLU then BatchNorm (the paper's order).
+
+Resolution: the paper's layer list ends at half the input resolution. We upsample the F-channel
+output trilinearly to the input grid (Z×Y×X) and then L2-normalise each voxel's feature, so every
+downstream part sees features at grid resolution. Inputs of any size work: the volume is
+zero-padded to a multiple of 8 per axis before the encoder and the output is cropped back.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from core.errors import check_shape
+
+
+def _conv_block(conv: nn.Module, channels: int) -> nn.Sequential:
+    return nn.Sequential(conv, nn.LeakyReLU(0.1, inplace=True), nn.BatchNorm3d(channels))
+
+
+class Encoder3D(nn.Module):
+    """B×Cin×Z×Y×X volume -> B×F×Z×Y×X per-voxel unit-length features."""
+
+    def __init__(self, *, in_channels: int = 4, width: int = 64, out_channels: int = 32,
+                 normalize: bool = True) -> None:
+        super().__init__()
+        self.in_channels, self.width, self.out_channels = in_channels, width, out_channels
+        self.normalize = normalize
+        C = width
+        self.down1 = _conv_block(nn.Conv3d(in_channels, C, 4, stride=2, padding=1), C)
+        self.down2 = _conv_block(nn.Conv3d(C, 2 * C, 4, stride=2, padding=1), 2 * C)
+        self.down3 = _conv_block(nn.Conv3d(2 * C, 4 * C, 4, stride=2, padding=1), 4 * C)
+        self.up1 = _conv_block(nn.ConvTranspose3d(4 * C, 2 * C, 4, stride=2, padding=1), 2 * C)
+        self.up2 = _conv_block(nn.ConvTranspose3d(4 * C, C, 4, stride=2, padding=1), C)
+        self.out = nn.Conv3d(2 * C, out_channels, 1)
+
+    def config(self) -> dict:
+        return {"in_channels": self.in_channels, "width": self.width,
+                "out_channels": self.out_channels, "normalize": self.normalize}
+
+    def forward(self, volume: torch.Tensor) -> torch.Tensor:
+        """volume: B×Cin×Z×Y×X -> features B×F×Z×Y×X (unit L2 norm per voxel if `normalize`)."""
+        check_shape("volume", volume, (None, self.in_channels, None, None, None))
+        Z, Y, X = volume.shape[-3:]
+        pad = [(-n) % 8 for n in (X, Y, Z)]  # F.pad order: last dim first
+        x0 = F.pad(volume, (0, pad[0], 0, pad[1], 0, pad[2]))  # B×Cin×Z8×Y8×X8 (multiples of 8)
+        x1 = self.down1(x0)   # B×C×Z/2×…
+        x2 = self.down2(x1)   # B×2C×Z/4×…
+        x3 = self.down3(x2)   # B×4C×Z/8×…
+        u1 = torch.cat([self.up1(x3), x2], dim=1)  # B×4C×Z/4×…
+        u2 = torch.cat([self.up2(u1), x1], dim=1)  # B×2C×Z/2×…
+        feat = self.out(u2)                        # B×F×Z/2×…
+        feat = F.interpolate(feat, size=x0.shape[-3:], mode="trilinear", align_corners=False)
+        feat = feat[..., :Z, :Y, :X]               # B×F×Z×Y×X (crop the padding)
+        if self.normalize:
+            feat = F.normalize(feat, dim=1)
+        return feat

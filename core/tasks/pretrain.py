@@ -1,0 +1,184 @@
+"""View-predictive pretraining step: contrastive (paper) or RGB regression (baseline).
+
+One step, all at one time step t of each record (B×T×V views):
+  1. pick a held-out target view v* (and t) at random; the other views are the inputs;
+  2. lift every view into `ref` with its known pose (cam_T_ref = inv(world_T_cam)·world_T_ref) and
+     encode it with the shared 3D encoder-decoder (one batched pass);
+  3. top-down 3D = masked average of the input views' features (the latent map);
+     bottom-up 3D = the target view's own features;
+  4. top-down 2D = the map rendered into the target camera by the projector (at `render_scale` of
+     the image size); bottom-up 2D = the 2D ResNet on the target image (stride 2 at half scale);
+  5. losses: contrastive — 0.1·margin2D + 1.0·margin3D + 0.001·(L2 2D + L2 3D), sampled only where
+     the target is observed (2D: pixels with depth whose point is inside the grid; 3D: voxels the
+     target's rays reach — its occupied ∪ free voxels); regression — L1 between the RGB rendered from
+     the map (E = 3) and the target image (downsampled to the render size).
+     Both objectives also train the occupancy head on the map, with labels from all V views
+     (occupied = voxelised points, free = ray traversal), class-balanced.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from core.errors import ShapeError
+from core.geometry import se3
+from core.geometry.camera import depth_to_points, scale_intrinsics
+from core.geometry.freespace import free_space
+from core.geometry.grid import GridConfig
+from core.losses.contrastive import ContrastiveConfig, view_contrastive_loss
+from core.losses.dense import dense_l2
+from core.losses.occupancy import balanced_occupancy_loss, occupancy_accuracy
+from core.losses.regression import rgb_l1
+from core.models.latent_map import Mapper, masked_average
+from core.models.net2d import Net2D
+from core.models.occupancy_head import OccupancyHead
+from core.models.projector import Projector
+from core.presets import Preset
+
+OBJECTIVES = ("contrastive", "regression")
+
+
+@dataclass(frozen=True)
+class PretrainConfig:
+    """Everything the pretraining step needs besides the batch (built from a preset by `from_preset`)."""
+
+    grid: GridConfig
+    objective: str = "contrastive"
+    feature_dim: int = 32          # F
+    embed_dim: int = 32            # E (contrastive); the regression head always renders 3 channels
+    encoder_width: int = 64        # C of the 3D encoder; the 2D ResNet uses (C, 2C)
+    depth_planes: int = 64
+    depth_min: float = 1.0
+    depth_max: float = 40.0
+    render_scale: float = 0.5      # projector output size relative to the camera image (1.0 or 0.5)
+    contrastive: ContrastiveConfig = field(default_factory=ContrastiveConfig)
+    coeff_2d: float = 0.1
+    coeff_3d: float = 1.0
+    coeff_l2: float = 0.001
+    coeff_occ: float = 1.0
+    coeff_rgb: float = 1.0
+    seed: int | None = None        # view selection / sampling RNG; None uses torch's global RNG
+
+    def __post_init__(self) -> None:
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
+        if self.render_scale not in (0.5, 1.0):
+            raise ValueError(f"render_scale must be 0.5 or 1.0, got {self.render_scale}")
+
+
+class PretrainTask(nn.Module):
+    """`forward(batch) -> {"loss", metrics…}`; `exported_modules()` names the parts a bundle keeps."""
+
+    def __init__(self, *, config: PretrainConfig) -> None:
+        super().__init__()
+        self.cfg = c = config
+        self.mapper = Mapper(grid=c.grid, width=c.encoder_width, feature_dim=c.feature_dim)
+        contrastive = c.objective == "contrastive"
+        self.projector = Projector(grid=c.grid, in_channels=c.feature_dim,
+                                   out_channels=c.embed_dim if contrastive else 3,
+                                   depth_planes=c.depth_planes, depth_min=c.depth_min, depth_max=c.depth_max,
+                                   normalize=contrastive)
+        self.net2d = (Net2D(in_channels=3, widths=(c.encoder_width, 2 * c.encoder_width),
+                            out_channels=c.embed_dim, stride=2 if c.render_scale == 0.5 else 1)
+                      if contrastive else None)
+        self.occupancy = OccupancyHead(in_channels=c.feature_dim)
+        self._generator = torch.Generator().manual_seed(c.seed) if c.seed is not None else None
+
+    @staticmethod
+    def from_preset(preset: Preset, *, objective: str = "contrastive", **overrides) -> "PretrainTask":
+        """Task at a preset's sizes; keyword `overrides` replace PretrainConfig fields."""
+        base = dict(grid=preset.grid, objective=objective, feature_dim=preset.feature_dim,
+                    embed_dim=preset.embed_dim, encoder_width=preset.encoder_width,
+                    depth_planes=preset.depth_planes, depth_min=preset.depth_min, depth_max=preset.depth_max,
+                    contrastive=ContrastiveConfig(samples=preset.train.contrastive_samples))
+        base.update(overrides)
+        return PretrainTask(config=PretrainConfig(**base))
+
+    def exported_modules(self) -> dict[str, nn.Module]:
+        mods = {"mapper": self.mapper, "projector": self.projector, "occupancy": self.occupancy}
+        if self.net2d is not None:
+            mods["net2d"] = self.net2d
+        return mods
+
+    def _randint(self, n: int) -> int:
+        return int(torch.randint(n, (1,), generator=self._generator).item())
+
+    def forward(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """batch: `core.data.batch.records_to_batch` output (B×T×V views, V ≥ 2) -> loss + metrics."""
+        rgb_all = batch["rgb"]  # B×T×V×3×H×W
+        B, T, V, _, H, W = rgb_all.shape
+        if V < 2:
+            raise ShapeError(f"pretraining needs at least 2 views per time step, got V={V}")
+        t, target = self._randint(T), self._randint(V)
+        inputs = [v for v in range(V) if v != target]
+        rgb, depth = rgb_all[:, t], batch["depth"][:, t]          # B×V×3×H×W, B×V×H×W
+        pix_T_cam = batch["pix_T_cam"]                             # B×V×4×4
+        cam_T_ref = se3.compose(se3.invert(batch["world_T_cam"][:, t]),
+                                batch["world_T_ref"][:, t, None].expand(B, V, 4, 4))  # B×V×4×4
+
+        feats, in_view, occupied = self.mapper.encode_views(rgb, depth, pix_T_cam, cam_T_ref)
+        top3d = masked_average(feats[:, inputs], in_view[:, inputs])  # B×F×Z×Y×X
+        free = self._free_space(depth, pix_T_cam, cam_T_ref)         # B×V×1×Z×Y×X
+
+        logits = self.occupancy(top3d)                                 # B×1×Z×Y×X
+        occ_label = occupied.amax(dim=1)                               # B×1×Z×Y×X
+        free_label = free.amax(dim=1)
+        out: dict[str, torch.Tensor] = {"loss_occ": balanced_occupancy_loss(logits, occ_label, free_label)}
+        out["occ_acc"] = occupancy_accuracy(logits.detach(), occ_label, free_label)
+
+        pix_target, cam_target = pix_T_cam[:, target], cam_T_ref[:, target]  # B×4×4
+        rgb_target = rgb[:, target]                                    # B×3×H×W
+        Hr, Wr = (math.ceil(H / 2), math.ceil(W / 2)) if self.cfg.render_scale == 0.5 else (H, W)
+        pix_render = scale_intrinsics(pix_target, Wr / W, Hr / H)
+        top2d = self.projector(top3d, pix_render, cam_target, Hr, Wr)  # B×E×Hr×Wr
+
+        if self.cfg.objective == "contrastive":
+            bottom3d = feats[:, target]                                # B×F×Z×Y×X
+            valid3d = torch.maximum(occupied[:, target], free[:, target])  # B×1×Z×Y×X
+            bottom2d = self.net2d(rgb_target)                          # B×E×Hr×Wr
+            valid2d = self._valid_pixels(depth[:, target], pix_target, cam_target, (Hr, Wr))
+            out["loss_3d"] = view_contrastive_loss(top3d, bottom3d, valid3d, self.cfg.contrastive, self._generator)
+            out["loss_2d"] = view_contrastive_loss(top2d, bottom2d, valid2d, self.cfg.contrastive, self._generator)
+            out["loss_l2_3d"] = dense_l2(top3d, bottom3d, valid3d)
+            out["loss_l2_2d"] = dense_l2(top2d, bottom2d, valid2d)
+            out["valid_3d"] = valid3d.float().mean()
+            out["valid_2d"] = valid2d.float().mean()
+            view_loss = (self.cfg.coeff_3d * out["loss_3d"] + self.cfg.coeff_2d * out["loss_2d"]
+                         + self.cfg.coeff_l2 * (out["loss_l2_3d"] + out["loss_l2_2d"]))
+        else:
+            target_small = F.interpolate(rgb_target, size=(Hr, Wr), mode="area")  # B×3×Hr×Wr
+            out["rgb_l1"] = rgb_l1(top2d + 0.5, target_small)  # the head predicts centred colour
+            view_loss = self.cfg.coeff_rgb * out["rgb_l1"]
+
+        loss = view_loss + self.cfg.coeff_occ * out["loss_occ"]
+        metrics = {k: v.detach().float() for k, v in out.items()}
+        return {"loss": loss, **metrics}
+
+    def _free_space(self, depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor) -> torch.Tensor:
+        """depth: B×V×H×W, pix_T_cam, cam_T_ref: B×V×4×4 -> free-space labels B×V×1×Z×Y×X."""
+        B, V, H, W = depth.shape
+        with torch.no_grad():
+            xyz_cam, valid = depth_to_points(depth.reshape(B * V, H, W), pix_T_cam.reshape(B * V, 4, 4))
+            free = free_space(xyz_cam, valid, cam_T_ref.reshape(B * V, 4, 4), self.cfg.grid)  # (B·V)×1×Z×Y×X
+        return free.to(depth.dtype).reshape(B, V, 1, *self.cfg.grid.shape_zyx)  # B×V×1×Z×Y×X
+
+    def _valid_pixels(self, depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor,
+                      size: tuple[int, int]) -> torch.Tensor:
+        """Target pixels with a depth return whose point lies inside the grid, at the render size.
+
+        depth: B×H×W, pix_T_cam, cam_T_ref: B×4×4 -> B×1×Hr×Wr float in {0, 1}.
+        """
+        B, H, W = depth.shape
+        g = self.cfg.grid
+        xyz_cam, valid = depth_to_points(depth, pix_T_cam)             # B×(H·W)×3, B×(H·W)
+        xyz_ref = se3.apply(se3.invert(cam_T_ref), xyz_cam)            # B×(H·W)×3
+        lo = torch.tensor(g.bounds_min, device=depth.device)
+        hi = torch.tensor(g.bounds_max, device=depth.device)
+        inside = valid & ((xyz_ref >= lo) & (xyz_ref < hi)).all(dim=-1)  # B×(H·W)
+        mask = inside.to(depth.dtype).reshape(B, 1, H, W)              # B×1×H×W
+        return (F.interpolate(mask, size=size, mode="nearest") > 0.5).to(depth.dtype)
