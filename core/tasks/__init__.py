@@ -19,6 +19,7 @@ TASKS: dict[str, str] = {
     "egomotion": "core.tasks.egomotion:EgomotionTask.from_preset",
     "occupancy": "core.tasks.occupancy:OccupancyTask.from_preset",
     "flow": "core.tasks.flow:FlowTask.from_preset",
+    "detector": "core.tasks.detector:DetectorTask.from_preset",
 }
 
 
