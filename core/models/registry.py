@@ -21,6 +21,7 @@ MODULE_KINDS: dict[str, str] = {
     "occupancy_head": "core.models.occupancy_head:OccupancyHead",
     "egomotion": "core.models.egomotion:EgomotionNet",
     "flow3d": "core.models.flow3d:Flow3D",
+    "detector3d": "core.models.detector3d:Detector3D",
 }
 
 
