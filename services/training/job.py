@@ -26,6 +26,7 @@ from core.errors import DataError
 from services.training.checkpoints import LocalCheckpointStore, load_checkpoint, read_checkpoint_state
 from services.training.config import TrainJobConfig
 from services.training.data import dataset_shard_paths
+from services.training.progress import MetricsTail
 from services.training.loop import CORE_TASKS, LoopOutcome, TaskSpec, TrainingError, train_loop
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
@@ -102,7 +103,7 @@ def _init_ray(config: TrainJobConfig) -> bool:
     runtime_env = {"env_vars": {"PYTHONPATH": pythonpath}}
     if config.attach:
         # Inside a Ray Jobs entrypoint: join that cluster (RAY_ADDRESS is set by the job supervisor).
-        ray.init(address="auto", runtime_env=runtime_env, log_to_driver=True)
+        ray.init(address="auto", runtime_env=runtime_env, log_to_driver=False)
         return True
     gpus = int(round(config.workers * config.gpus_per_worker + 0.499)) if config.gpus_per_worker else 0
     ray.init(
@@ -112,7 +113,9 @@ def _init_ray(config: TrainJobConfig) -> bool:
         include_dashboard=False,
         object_store_memory=config.object_store_mb * 2**20,
         runtime_env=runtime_env,
-        log_to_driver=True,
+        # Workers' own logs (Ray Data bars, Train internals) stay in Ray's log files; the console
+        # gets the progress lines the driver reads back from metrics.jsonl (MetricsTail).
+        log_to_driver=False,
         configure_logging=True,
         logging_level="WARNING",
     )
@@ -121,6 +124,7 @@ def _init_ray(config: TrainJobConfig) -> bool:
 
 def _run_on_ray(config: TrainJobConfig) -> tuple[LoopOutcome, Path | None]:
     import ray
+    import ray.data
     from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig
     from ray.train.torch import TorchTrainer
 
@@ -128,6 +132,7 @@ def _run_on_ray(config: TrainJobConfig) -> tuple[LoopOutcome, Path | None]:
 
     os.environ.setdefault("RAY_TRAIN_V2_ENABLED", "1")
     started_here = _init_ray(config)
+    ray.data.DataContext.get_current().enable_progress_bars = False
     try:
         resources = {"CPU": config.cpus_per_worker}
         if config.gpus_per_worker:
@@ -144,10 +149,13 @@ def _run_on_ray(config: TrainJobConfig) -> tuple[LoopOutcome, Path | None]:
             ),
             datasets={"train": read_shards(config.data_dir, seed=config.seed)},
         )
+        tail = MetricsTail(config.metrics_path).run_in_thread()
         try:
             result = trainer.fit()
         except Exception as e:  # TrainingFailedError wraps the worker's exception
             raise TrainingError(_root_cause_line(e)) from None
+        finally:
+            tail.stop()
         outcome = LoopOutcome(**result.return_value)
         checkpoint = result.checkpoint
         return outcome, Path(checkpoint.path) if checkpoint is not None else None

@@ -60,7 +60,10 @@ def _core_build(config: TrainJobConfig, device: torch.device) -> torch.nn.Module
 def _core_to_batch(records: list[dict], device: torch.device) -> dict:
     from core.data.batch import records_to_batch
 
-    return records_to_batch(records, device)
+    batch = records_to_batch(records, device)
+    # contiguous(): rgb arrives as a permuted (channels-last) view, and torch 2.13's oneDNN backward
+    # of a strided 1×1 conv on such an input corrupts the heap (double free; seen in Net2D's shortcut).
+    return {k: v.contiguous() for k, v in batch.items()}
 
 
 def _core_exported(task: torch.nn.Module) -> dict:
@@ -76,6 +79,7 @@ class TrainSession(Protocol):
     rank: int
     world_size: int
     device: torch.device
+    progress_stream: object  # where rank 0 prints progress lines (None: only metrics.jsonl)
 
     def epoch_batches(self, epoch: int):
         """Yield lists of `batch_size` records (dicts of numpy arrays) for this worker's share."""
@@ -166,27 +170,25 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
     exported = spec.exported(task)
     freeze_modules(task, exported, config.freeze)
 
+    trainable = [p for p in task.parameters() if p.requires_grad]
+    if not trainable:
+        raise TrainingError("nothing to train: every parameter of the task is frozen")
+    optimizer = torch.optim.Adam(trainable, lr=config.lr)
+
     start_step = 0
     with session.latest_checkpoint() as ckpt_dir:
         if ckpt_dir is not None:
             state = read_checkpoint_state(ckpt_dir)
             check_same_run(state.config, config.identity(), ckpt_dir)
-            trainable = [p for p in task.parameters() if p.requires_grad]
-            optimizer = torch.optim.Adam(trainable, lr=config.lr)
             start_step = load_checkpoint(ckpt_dir, task=task, optimizer=optimizer).step
-        else:
-            if config.init_bundle:
-                load_init_bundle(exported, config.init_bundle, preset_name=config.preset, device=device)
-            trainable = [p for p in task.parameters() if p.requires_grad]
-            optimizer = torch.optim.Adam(trainable, lr=config.lr)
-    if not trainable:
-        raise TrainingError("nothing to train: every parameter of the task is frozen")
+        elif config.init_bundle:
+            load_init_bundle(exported, config.init_bundle, preset_name=config.preset, device=device)
 
     model = session.prepare_model(task)
     logger = None
     if session.rank == 0:
         logger = ProgressLogger(metrics_path=config.metrics_path, total_steps=config.steps,
-                                start_step=start_step, attempt=start_step)
+                                start_step=start_step, stream=session.progress_stream)
         if start_step:
             print(f"resuming {config.task} from step {start_step} ({config.run_dir})", flush=True)
 

@@ -1,8 +1,8 @@
 """Progress of a run: one console line and one metrics.jsonl line per logged step.
 
 Only the rank-0 worker logs. metrics.jsonl is appended to, so a resumed run continues the same
-file; each line carries the step, wall time, attempt number and the losses/metrics averaged over
-workers.
+file; each line carries the step, wall time, the step this attempt started from, rate, ETA and
+the losses/metrics averaged over workers.
 """
 
 from __future__ import annotations
@@ -69,30 +69,107 @@ class RateMeter:
         return (total_steps - step) / rate if rate > 0 else float("nan")
 
 
-class ProgressLogger:
-    """Prints progress lines and appends JSON lines to `metrics_path` (rank 0 only)."""
+# Keys of a metrics.jsonl record that are bookkeeping, not losses/metrics of the task.
+RECORD_KEYS = ("step", "total_steps", "time", "start_step", "steps_per_s", "eta_s")
 
-    def __init__(self, *, metrics_path: str | Path, total_steps: int, start_step: int, attempt: int,
+
+class ProgressLogger:
+    """Appends one JSON line per logged step to `metrics_path` and, if `stream` is given, prints
+    the progress line there too (rank 0 only). Ray workers pass no stream: the driver prints the
+    lines it reads back from metrics.jsonl (`MetricsTail`), which keeps Ray's own logs off the console.
+    """
+
+    def __init__(self, *, metrics_path: str | Path, total_steps: int, start_step: int,
                  stream: TextIO | None = None, clock=time.monotonic) -> None:
         self.metrics_path = Path(metrics_path)
         self.metrics_path.parent.mkdir(parents=True, exist_ok=True)
         self.total_steps = total_steps
-        self.attempt = attempt
-        self.stream = stream if stream is not None else sys.stdout
+        self.start_step = start_step
+        self.stream = stream
         self.meter = RateMeter(start_step=start_step, clock=clock)
 
     def log(self, step: int, metrics: dict[str, float]) -> dict:
         """Record one step; returns the JSON record written."""
         rate = self.meter.rate(step)
         eta = self.meter.eta(step, self.total_steps)
-        record = {"step": step, "time": time.time(), "attempt": self.attempt,
-                  **{k: float(v) for k, v in metrics.items()},
-                  "steps_per_s": rate if math.isfinite(rate) else None}
+        record = {"step": step, "total_steps": self.total_steps, "time": time.time(),
+                  "start_step": self.start_step,
+                  "steps_per_s": rate if math.isfinite(rate) else None,
+                  "eta_s": eta if math.isfinite(eta) else None,
+                  **{k: float(v) for k, v in metrics.items()}}
         with self.metrics_path.open("a") as f:
             f.write(json.dumps(record, allow_nan=True) + "\n")
-        print(format_progress(step=step, total_steps=self.total_steps, metrics=metrics,
-                              steps_per_s=rate, eta_s=eta), file=self.stream, flush=True)
+        if self.stream is not None:
+            print(format_record(record), file=self.stream, flush=True)
         return record
+
+
+def format_record(record: dict) -> str:
+    """The console line of one metrics.jsonl record."""
+    nan = float("nan")
+    metrics = {k: v for k, v in record.items() if k not in RECORD_KEYS and isinstance(v, (int, float))}
+    rate = record.get("steps_per_s")
+    eta = record.get("eta_s")
+    return format_progress(step=record["step"], total_steps=record.get("total_steps", record["step"]),
+                           metrics=metrics, steps_per_s=nan if rate is None else rate,
+                           eta_s=nan if eta is None else eta)
+
+
+class MetricsTail:
+    """Prints the lines appended to a metrics.jsonl file while a run is going (driver side).
+
+    `poll()` prints what is new since the last call; `run_in_thread()` polls until `stop()`. A new
+    `start_step` in the records (a retry from a checkpoint, or a resumed run) gets its own line.
+    """
+
+    def __init__(self, path: str | Path, *, stream: TextIO | None = None) -> None:
+        self.path = Path(path)
+        self.stream = stream if stream is not None else sys.stdout
+        self._offset = self.path.stat().st_size if self.path.is_file() else 0
+        self._start_step: int | None = None
+        self._stop = None
+        self._thread = None
+
+    def poll(self) -> int:
+        if not self.path.is_file():
+            return 0
+        with self.path.open("rb") as f:
+            f.seek(self._offset)
+            data = f.read()
+        complete = data[: data.rfind(b"\n") + 1]  # a line still being written waits for the next poll
+        self._offset += len(complete)
+        count = 0
+        for line in complete.decode().splitlines():
+            if not line.strip():
+                continue
+            record = json.loads(line)
+            start = record.get("start_step")
+            if start != self._start_step and start:
+                print(f"workers (re)started from the checkpoint at step {start}", file=self.stream, flush=True)
+            self._start_step = start
+            print(format_record(record), file=self.stream, flush=True)
+            count += 1
+        return count
+
+    def run_in_thread(self, interval_s: float = 0.5) -> "MetricsTail":
+        import threading
+
+        self._stop = threading.Event()
+
+        def loop() -> None:
+            while not self._stop.wait(interval_s):
+                self.poll()
+
+        self._thread = threading.Thread(target=loop, name="metrics-tail", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self._thread = None
+        self.poll()
 
 
 def read_metrics(path: str | Path) -> list[dict]:

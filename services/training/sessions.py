@@ -8,6 +8,7 @@ mean over workers.
 from __future__ import annotations
 
 import contextlib
+import sys
 import tempfile
 from pathlib import Path
 
@@ -37,6 +38,7 @@ class LocalSession:
 
     rank = 0
     world_size = 1
+    progress_stream = sys.stdout
 
     def __init__(self, config: TrainJobConfig, *, dataset=None) -> None:
         """dataset: anything with len() and [i] → record; default: ShardDataset(config.data_dir)."""
@@ -81,6 +83,9 @@ class RaySession:
         import ray.train
         import ray.train.torch
 
+        import ray.data
+
+        ray.data.DataContext.get_current().enable_progress_bars = False
         context = ray.train.get_context()
         self.config = config
         self.rank = context.get_world_rank()
@@ -90,6 +95,7 @@ class RaySession:
         if self.device.type == "cuda":
             self.device = ray.train.torch.get_device()
         self._shard = ray.train.get_dataset_shard("train")
+        self.progress_stream = None  # the driver prints progress from metrics.jsonl
 
     def epoch_batches(self, epoch: int):
         from services.training.data import decode_rows

@@ -1,0 +1,85 @@
+"""The shared training loop in the in-process session, on a toy task: learning, resume, NaN guard."""
+
+import math
+
+import pytest
+
+from services.training.checkpoints import read_checkpoint_state
+from services.training.config import TrainJobConfig
+from services.training.loop import train_loop
+from services.training.progress import read_metrics
+from services.training.sessions import LocalSession
+from tests.unit.training.toy import toy_records, toy_spec
+
+
+def _config(tmp_path, **overrides) -> TrainJobConfig:
+    base = dict(task="toy", data_dir=str(tmp_path / "unused"), run_dir=str(tmp_path / "run"),
+                preset="tiny", steps=40, batch_size=4, lr=0.05, checkpoint_every=10, log_every=1,
+                device="cpu")
+    return TrainJobConfig(**{**base, **overrides}).resolved()
+
+
+def _run(config, records, spec=None):
+    return train_loop(config, LocalSession(config, dataset=records), spec or toy_spec())
+
+
+def test_loss_decreases_and_checkpoints_land_every_n_steps(tmp_path):
+    config = _config(tmp_path)
+    outcome = _run(config, toy_records(32))
+    assert outcome.status == "finished" and outcome.step == 40 and outcome.start_step == 0
+    losses = [r["loss"] for r in read_metrics(config.metrics_path)]
+    assert len(losses) == 40
+    assert sum(losses[-5:]) < 0.2 * sum(losses[:5])
+    store = LocalSession(config, dataset=[]).store
+    assert [read_checkpoint_state(p).step for p in store.list()] == [30, 40]  # keep_checkpoints=2
+
+
+def test_rerun_resumes_from_the_latest_checkpoint(tmp_path):
+    records = toy_records(32)
+    first = _config(tmp_path, steps=20)
+    _run(first, records)
+    second = _config(tmp_path, steps=30)  # same run dir, more steps
+    outcome = _run(second, records)
+    assert outcome.start_step == 20 and outcome.step == 30
+    steps = [r["step"] for r in read_metrics(second.metrics_path)]
+    assert steps == list(range(1, 31))  # the rerun continued at 21, nothing repeated
+    # A third run with nothing left to do trains no step.
+    again = _run(second, records)
+    assert again.start_step == again.step == 30
+
+
+def test_non_finite_loss_stops_before_the_step_and_keeps_the_last_good_checkpoint(tmp_path):
+    config = _config(tmp_path, steps=40, checkpoint_every=5)
+    outcome = _run(config, toy_records(32), toy_spec(nan_at_call=13))
+    assert outcome.status == "non_finite"
+    assert outcome.step == 12  # steps 1..12 completed; the 13th forward gave NaN
+    assert outcome.message.startswith("non-finite loss at step 13 (loss=nan")
+    assert "\n" not in outcome.message
+    latest = LocalSession(config, dataset=[]).store.latest()
+    state = read_checkpoint_state(latest)
+    assert state.step == 10 and all(math.isfinite(v) for v in state.metrics.values())
+    assert max(r["step"] for r in read_metrics(config.metrics_path)) == 12
+
+
+def test_too_few_records_for_one_batch_is_a_data_error(tmp_path):
+    from core.errors import DataError
+
+    with pytest.raises(DataError, match="not one full batch of 4 records"):
+        _run(_config(tmp_path), toy_records(3))
+
+
+def test_resume_refuses_a_run_dir_of_another_task(tmp_path):
+    from services.training.checkpoints import CheckpointError
+
+    _run(_config(tmp_path, steps=10), toy_records(8))
+    with pytest.raises(CheckpointError, match="different run"):
+        _run(_config(tmp_path, steps=20, task_options={"objective": "regression"}), toy_records(8))
+
+
+def test_freeze_keeps_named_modules_fixed(tmp_path):
+    from services.training.loop import TrainingError
+
+    with pytest.raises(TrainingError, match="nothing to train"):
+        _run(_config(tmp_path, steps=3, freeze=("head",)), toy_records(8))
+    with pytest.raises(TrainingError, match="no module 'mapper'"):
+        _run(_config(tmp_path, steps=3, freeze=("mapper",)), toy_records(8))
