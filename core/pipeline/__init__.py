@@ -1,0 +1,8 @@
+"""Inference over a loaded Bundle, shared by every transport (REST, gRPC, zenoh). See docs/architecture.md.
+
+Each function takes batched tensors on the bundle's device and returns a dict of tensors.
+"""
+
+from core.pipeline.map import map_frames
+
+__all__ = ["map_frames"]

@@ -1,0 +1,97 @@
+"""`n3dmap eval KIND ...`: evaluate a bundle (or prediction files) on a dataset and write a report.
+
+Every kind writes REPORT_DIR/report.md, metrics.json and PNG plots through one writer
+(`services.reports.Report`). A kind lives in a module listed in `EVAL_KINDS` that exposes
+`register(kind_subparsers)`; most build their parser with `add_eval_parser` (the shared options
+`--data --bundle --out --max-records --device`) and set `func`. A module not written yet is skipped,
+like `main.AREAS`. Adding a kind (detection, moving, retrieval, all) is one line here plus its module.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from pathlib import Path
+from typing import Iterator
+
+# kind -> module with register(kind_subparsers), in `n3dmap eval --help` order.
+EVAL_KINDS: dict[str, str] = {
+    "egomotion": "services.cli.eval_tasks.egomotion",
+    "flow": "services.cli.eval_tasks.flow",
+    "occupancy": "services.cli.eval_tasks.occupancy",
+}
+
+
+def add_eval_parser(kinds, name: str, *, help: str, description: str | None = None,
+                    needs_bundle: bool = True) -> argparse.ArgumentParser:
+    """Add `n3dmap eval NAME` with the shared options; the caller adds its own and sets func."""
+    parser = kinds.add_parser(name, help=help, description=description or help)
+    parser.add_argument("--data", required=True, metavar="DIR", help="dataset directory (manifest.json + shards)")
+    if needs_bundle:
+        parser.add_argument("--bundle", required=True, metavar="DIR", help="model bundle to evaluate")
+    parser.add_argument("--out", required=True, metavar="REPORT_DIR",
+                        help="where report.md, metrics.json and the PNG plots go (created)")
+    parser.add_argument("--max-records", type=int, default=None, metavar="N",
+                        help="evaluate only the first N records (default: all)")
+    parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default: auto)")
+    return parser
+
+
+def resolve_device(choice: str):
+    """'auto' -> cuda if available else cpu; anything else as given (a clear error if unavailable)."""
+    import torch
+
+    from services.cli.main import CliError
+
+    if choice == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(choice)
+    except RuntimeError as e:
+        raise CliError(f"--device {choice!r}: {e}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise CliError(f"--device {choice}: CUDA is not available on this machine")
+    return device
+
+
+def iter_records(data_dir: str, max_records: int | None) -> Iterator[dict]:
+    """Records of the dataset in order, at most `max_records` (DataError names a bad shard)."""
+    from core.data.shards import ShardDataset
+    from services.cli.main import CliError
+
+    if not Path(data_dir).is_dir():
+        raise CliError(f"--data {data_dir}: not a directory")
+    if max_records is not None and max_records < 1:
+        raise CliError(f"--max-records must be at least 1, got {max_records}")
+    dataset = ShardDataset(data_dir)
+    n = len(dataset) if max_records is None else min(max_records, len(dataset))
+    if n == 0:
+        raise CliError(f"--data {data_dir}: the dataset holds no records")
+    for i in range(n):
+        yield dataset[i]
+
+
+def load_bundle_for_eval(path: str, device, needed: tuple[str, ...]):
+    """Load the bundle and check it holds the modules an evaluation needs."""
+    from core.bundle import load_bundle
+    from core.errors import BundleError
+
+    bundle = load_bundle(path, device)
+    missing = [m for m in needed if m not in bundle.modules]
+    if missing:
+        raise BundleError(f"--bundle {path}: lacks module(s) {missing} (it holds {sorted(bundle.modules)})")
+    return bundle
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("eval", help="evaluate a bundle on a dataset and write a report",
+                                   description="Evaluate and write REPORT_DIR/report.md, metrics.json and plots.")
+    kinds = parser.add_subparsers(dest="eval_kind", metavar="KIND", required=True)
+    for kind, module_name in EVAL_KINDS.items():
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as e:
+            if e.name == module_name:
+                continue
+            raise
+        module.register(kinds)
