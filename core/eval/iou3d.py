@@ -20,9 +20,10 @@ from core.errors import ShapeError
 
 # Pairs clipped per vectorised step: bounds the temporaries (about 1 KB per pair) to ~64 MB.
 _PAIRS_PER_CHUNK = 65536
-# A convex quadrilateral clipped by another has at most 8 vertices; the spare room keeps the
-# truncation in `_clip_by_halfplane` harmless should rounding make a near-degenerate step emit more.
-_MAX_VERTICES = 12
+# Clipping a convex polygon by one half-plane adds at most one vertex; each step keeps room for
+# two, so the truncation in `_clip_by_halfplane` stays harmless should rounding make a
+# near-degenerate step emit one more than the exact count.
+_SPARE_PER_STEP = 2
 
 
 def as_boxes(boxes, name: str = "boxes") -> np.ndarray:
@@ -67,12 +68,12 @@ def _polygon_area(vertices: np.ndarray, count: np.ndarray) -> np.ndarray:
     return 0.5 * np.abs(cross.sum(axis=1))
 
 
-def _clip_by_halfplane(poly: np.ndarray, count: np.ndarray, a: np.ndarray, b: np.ndarray):
+def _clip_by_halfplane(poly: np.ndarray, count: np.ndarray, a: np.ndarray, b: np.ndarray, out_vertices: int):
     """One Sutherland–Hodgman step: keep the part of each polygon left of the directed edge a→b.
 
     poly: P×V×2 padded polygons with `count` valid vertices; a, b: P×2 edge endpoints of a
-    counter-clockwise clip polygon (its interior is on the left). Returns (P×V×2, P) with the
-    result truncated to V vertices, which is exact when V bounds the true vertex count.
+    counter-clockwise clip polygon (its interior is on the left). Returns (P×V'×2, P) with the
+    result truncated to V' = out_vertices, which is exact when V' bounds the true vertex count.
     """
     P, V, _ = poly.shape
     edge = b - a                                                           # P×2
@@ -91,21 +92,23 @@ def _clip_by_halfplane(poly: np.ndarray, count: np.ndarray, a: np.ndarray, b: np
     crossing = poly + t[..., None] * (poly_n - poly)                       # P×V×2
     cand = np.stack([poly, crossing], axis=2).reshape(P, 2 * V, 2)         # P×2V×2: cur, crossing
     keep = np.stack([valid & inside, crosses], axis=2).reshape(P, 2 * V)   # P×2V
-    # Compact the kept vertices to the front, preserving their order (stable sort on ~keep).
-    order = np.argsort(~keep, axis=1, kind="stable")[:, :V]                # P×V
-    out = np.take_along_axis(cand, order[..., None].repeat(2, axis=2), axis=1)
-    new_count = np.minimum(keep.sum(axis=1), V)
-    return out, new_count
+    # Compact the kept vertices to the front, preserving their order: each kept vertex goes to
+    # slot (number kept before it); dropped ones and any overflow go to one extra slot, cut off after.
+    slot = np.cumsum(keep, axis=1) - 1                                     # P×2V
+    slot = np.where(keep & (slot < out_vertices), slot, out_vertices)
+    out = np.zeros((P, out_vertices + 1, 2))
+    out[np.arange(P)[:, None], slot] = cand
+    new_count = np.minimum(keep.sum(axis=1), out_vertices)
+    return out[:, :out_vertices], new_count
 
 
 def _intersection_area_pairs(ca: np.ndarray, cb: np.ndarray) -> np.ndarray:
     """Area of rectangle ca[p] ∩ rectangle cb[p] for P pairs: ca, cb P×4×2 counter-clockwise."""
-    P = ca.shape[0]
-    poly = np.zeros((P, _MAX_VERTICES, 2))
-    poly[:, :4] = ca
-    count = np.full(P, 4)
+    poly = ca
+    count = np.full(ca.shape[0], 4)
     for k in range(4):
-        poly, count = _clip_by_halfplane(poly, count, cb[:, k], cb[:, (k + 1) % 4])
+        poly, count = _clip_by_halfplane(poly, count, cb[:, k], cb[:, (k + 1) % 4],
+                                         poly.shape[1] + _SPARE_PER_STEP)
     return _polygon_area(poly, count)
 
 

@@ -106,6 +106,8 @@ def test_symmetric_and_accepts_torch_and_empty():
     rng = np.random.default_rng(1)
     a = np.concatenate([rng.uniform(-2, 2, (6, 3)), rng.uniform(0.5, 3, (6, 3)), rng.uniform(-3, 3, (6, 1))], 1)
     np.testing.assert_allclose(iou_3d(a, a[::-1]), iou_3d(a[::-1], a).T, atol=1e-12)
+    # Coincident edges everywhere (each box with itself) is the degenerate case for clipping.
+    np.testing.assert_allclose(np.diag(iou_3d(a, a)), 1.0, atol=1e-9)
     np.testing.assert_allclose(iou_3d(torch.tensor(a), a), iou_3d(a, a))
     assert iou_3d(np.zeros((0, 7)), a).shape == (0, 6)
     assert iou_bev(a, np.zeros((0, 7))).shape == (6, 0)
