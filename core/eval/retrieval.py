@@ -84,3 +84,26 @@ def extract_patches(features: torch.Tensor, centers: torch.Tensor, size: int) ->
         flat = flat * spatial[d] + pos[..., d]
     values = features.reshape(features.shape[0], -1)[:, flat]                      # C×N×S
     return values.permute(1, 0, 2).reshape(len(centers), -1)                       # N×(C·S)
+
+
+def retrieval_pool(query_features, candidate_features, *, per_example: int = 10, size: int,
+                   generator: torch.Generator, valid=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Assemble the paper's pool: `per_example` corresponding patch pairs from each example.
+
+    query_features[e], candidate_features[e]: C×H×W (2D) or C×Z×Y×X (3D) of example e, in
+    correspondence location by location (same view for 2D; same `ref` grid for 3D). valid[e]:
+    H×W / Z×Y×X bool where a centre may be drawn (e.g. observed pixels, occupied voxels), or None.
+    With 100 examples × 10 this is 1000 pairs: each query then has 9 negatives from its own
+    example and 990 from the others. Returns (queries N×D, candidates N×D), pair i matching.
+    """
+    if len(query_features) != len(candidate_features):
+        raise ShapeError(f"{len(query_features)} query tensors but {len(candidate_features)} candidate tensors")
+    queries, candidates = [], []
+    for e, (q, c) in enumerate(zip(query_features, candidate_features)):
+        if q.shape != c.shape:
+            raise ShapeError(f"example {e}: query features {tuple(q.shape)} vs candidate features {tuple(c.shape)}")
+        ok = torch.ones(q.shape[1:], dtype=torch.bool) if valid is None else valid[e].bool().cpu()
+        centers = sample_centers(ok, per_example, margin=size // 2, generator=generator).to(q.device)
+        queries.append(extract_patches(q, centers, size))
+        candidates.append(extract_patches(c, centers, size))
+    return torch.cat(queries), torch.cat(candidates)

@@ -8,6 +8,7 @@ velocities come out in `ref` (metres, m/s).
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from core.errors import ShapeError
 from core.geometry.grid import GridConfig
@@ -62,3 +63,24 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
         return []
     keep = nms_bev(np.stack([d["box_ref"] for d in found]), np.array([d["score"] for d in found]), nms_iou)
     return [found[i] for i in keep]
+
+
+def detections_to_tensors(per_example: list[list[dict]], *, device=None,
+                          dtype: torch.dtype = torch.float32) -> dict[str, torch.Tensor]:
+    """Pack B lists of `moving_objects_from_flow` results into the padded tensors of
+    core.pipeline.moving_objects: `boxes` B×K×7 (ref), `scores` B×K, `valid` B×K bool,
+    `velocities` B×K×3 (m/s), with K the longest list (at least 1; padding rows are zero, not valid)."""
+    B = len(per_example)
+    K = max([1] + [len(d) for d in per_example])
+    boxes = torch.zeros(B, K, 7, dtype=dtype)
+    scores = torch.zeros(B, K, dtype=dtype)
+    velocities = torch.zeros(B, K, 3, dtype=dtype)
+    valid = torch.zeros(B, K, dtype=torch.bool)
+    for b, dets in enumerate(per_example):
+        for k, d in enumerate(dets):
+            boxes[b, k] = torch.as_tensor(d["box_ref"], dtype=dtype)
+            scores[b, k] = float(d["score"])
+            velocities[b, k] = torch.as_tensor(d["velocity_ref"], dtype=dtype)
+            valid[b, k] = True
+    return {"boxes": boxes.to(device), "scores": scores.to(device), "valid": valid.to(device),
+            "velocities": velocities.to(device)}

@@ -4,7 +4,8 @@ import pytest
 import torch
 
 from core.errors import ShapeError
-from core.eval.retrieval import extract_patches, precision_at_k, sample_centers, true_match_rank
+from core.eval.retrieval import (extract_patches, precision_at_k, retrieval_pool, sample_centers,
+                                 true_match_rank)
 
 
 def slow_precision_at_k(queries, candidates, k):
@@ -58,3 +59,15 @@ def test_extract_patches_2d_and_3d_against_loops():
         extract_patches(feat2d, torch.tensor([[0, 0]]), 3)
     with pytest.raises(ShapeError):
         sample_centers(valid, 3, margin=1, generator=g)
+
+
+def test_pool_of_100_examples_gives_1000_pairs_and_perfect_retrieval_for_identical_maps():
+    g = torch.Generator().manual_seed(3)
+    maps = [torch.randn(4, 6, 3, 6, generator=g) for _ in range(100)]  # C×Z×Y×X per example
+    queries, candidates = retrieval_pool(maps, [m.clone() for m in maps], per_example=10, size=3, generator=g)
+    assert queries.shape == candidates.shape == (1000, 4 * 27)
+    assert precision_at_k(queries, candidates)["p@1"] == 1.0
+    # Unrelated candidate maps: chance level is K/1000.
+    other = [torch.randn(4, 6, 3, 6, generator=g) for _ in range(100)]
+    q2, c2 = retrieval_pool(maps, other, per_example=10, size=3, generator=g)
+    assert precision_at_k(q2, c2)["p@10"] < 0.05

@@ -11,7 +11,7 @@ from core.eval.iou3d import iou_3d
 from core.geometry.grid import GridConfig
 from core.moving.boxfit import fit_box_to_voxels, min_area_rectangle
 from core.moving.components import component_indices, connected_components
-from core.moving.detect_moving import moving_objects_from_flow
+from core.moving.detect_moving import detections_to_tensors, moving_objects_from_flow
 from core.moving.nms import nms_bev
 from core.moving.saliency import center_surround_score
 
@@ -149,6 +149,9 @@ def test_one_moving_rotated_block_gives_one_box_with_velocity():
     assert det["score"] == pytest.approx(1.0)
     np.testing.assert_allclose(det["velocity_ref"], [1.2 * 0.5 / 0.1, 0.0, -0.6 * 0.5 / 0.1], atol=1e-6)
     assert det["num_voxels"] == int(block.sum())
+    packed = detections_to_tensors([found, []])
+    assert packed["boxes"].shape == (2, 1, 7) and packed["valid"].tolist() == [[True], [False]]
+    np.testing.assert_allclose(packed["velocities"][0, 0].numpy(), det["velocity_ref"], rtol=1e-6)
 
 
 def test_zero_flow_finds_nothing_and_noise_below_threshold_is_ignored():
