@@ -62,6 +62,8 @@ class PretrainConfig:
     coeff_l2: float = 0.001
     coeff_occ: float = 1.0
     coeff_rgb: float = 1.0
+    free_space_stride: int = 2     # trace free-space rays from every n-th pixel per axis (labels only;
+                                   # neighbouring rays cross the same voxels, tracing is the step's cost)
     seed: int | None = None        # view selection / sampling RNG; None uses torch's global RNG
 
     def __post_init__(self) -> None:
@@ -162,8 +164,11 @@ class PretrainTask(nn.Module):
     def _free_space(self, depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor) -> torch.Tensor:
         """depth: B×V×H×W, pix_T_cam, cam_T_ref: B×V×4×4 -> free-space labels B×V×1×Z×Y×X."""
         B, V, H, W = depth.shape
+        s = self.cfg.free_space_stride
         with torch.no_grad():
             xyz_cam, valid = depth_to_points(depth.reshape(B * V, H, W), pix_T_cam.reshape(B * V, 4, 4))
+            xyz_cam = xyz_cam.reshape(B * V, H, W, 3)[:, ::s, ::s].reshape(B * V, -1, 3)  # (B·V)×N'×3
+            valid = valid.reshape(B * V, H, W)[:, ::s, ::s].reshape(B * V, -1)            # (B·V)×N'
             free = free_space(xyz_cam, valid, cam_T_ref.reshape(B * V, 4, 4), self.cfg.grid)  # (B·V)×1×Z×Y×X
         return free.to(depth.dtype).reshape(B, V, 1, *self.cfg.grid.shape_zyx)  # B×V×1×Z×Y×X
 
