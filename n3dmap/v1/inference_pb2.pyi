@@ -52,18 +52,20 @@ class MapRequest(_message.Message):
     def __init__(self, views: _Optional[_Iterable[_Union[_types_pb2.Frame, _Mapping]]] = ..., features: _Optional[bool] = ...) -> None: ...
 
 class MapResponse(_message.Message):
-    __slots__ = ("info", "grid", "occupancy", "heightmap", "features")
+    __slots__ = ("info", "grid", "occupancy", "heightmap", "features", "observed")
     INFO_FIELD_NUMBER: _ClassVar[int]
     GRID_FIELD_NUMBER: _ClassVar[int]
     OCCUPANCY_FIELD_NUMBER: _ClassVar[int]
     HEIGHTMAP_FIELD_NUMBER: _ClassVar[int]
     FEATURES_FIELD_NUMBER: _ClassVar[int]
+    OBSERVED_FIELD_NUMBER: _ClassVar[int]
     info: ResponseInfo
     grid: Grid
     occupancy: _types_pb2.Tensor
     heightmap: _types_pb2.Tensor
     features: _types_pb2.Tensor
-    def __init__(self, info: _Optional[_Union[ResponseInfo, _Mapping]] = ..., grid: _Optional[_Union[Grid, _Mapping]] = ..., occupancy: _Optional[_Union[_types_pb2.Tensor, _Mapping]] = ..., heightmap: _Optional[_Union[_types_pb2.Tensor, _Mapping]] = ..., features: _Optional[_Union[_types_pb2.Tensor, _Mapping]] = ...) -> None: ...
+    observed: _types_pb2.Tensor
+    def __init__(self, info: _Optional[_Union[ResponseInfo, _Mapping]] = ..., grid: _Optional[_Union[Grid, _Mapping]] = ..., occupancy: _Optional[_Union[_types_pb2.Tensor, _Mapping]] = ..., heightmap: _Optional[_Union[_types_pb2.Tensor, _Mapping]] = ..., features: _Optional[_Union[_types_pb2.Tensor, _Mapping]] = ..., observed: _Optional[_Union[_types_pb2.Tensor, _Mapping]] = ...) -> None: ...
 
 class PairRequest(_message.Message):
     __slots__ = ("views0", "views1")

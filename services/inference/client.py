@@ -129,10 +129,11 @@ class RestClient:
         if r.status_code >= 400:
             try:
                 body = r.json()
-                raise ServiceCallError(body.get("error", str(r.status_code)), body.get("detail", r.text),
-                                       field=body.get("field"), status=r.status_code)
             except ValueError:
-                raise ServiceCallError(f"http_{r.status_code}", r.text[:500], status=r.status_code) from None
+                body = {}
+            if not isinstance(body, dict) or "error" not in body:
+                raise ServiceCallError(f"http_{r.status_code}", r.text[:500], status=r.status_code)
+            raise ServiceCallError(body["error"], body.get("detail", ""), field=body.get("field"), status=r.status_code)
         if r.headers.get("content-type", "").startswith(NPZ):
             arrays = codecs.load_npz(r.content, "response")
             meta = json.loads(str(arrays.pop("meta_json")))
@@ -142,7 +143,8 @@ class RestClient:
 
     # --- API -------------------------------------------------------------------------------
     def map(self, frames: Frames, *, features: bool = False) -> dict:
-        """-> {"occupancy": Z×Y×X, "heightmap": Z×X, ["features": F×Z×Y×X], "grid", "info"}."""
+        """-> {"observed": Z×Y×X, ["occupancy": Z×Y×X, "heightmap": Z×X] (with an occupancy head),
+        ["features": F×Z×Y×X], "grid", "info"}."""
         return self._post("/v1/map", json_body={"views": self._views_json(frames), "features": features},
                           npz_arrays=self._views_npz(frames), params={"features": str(features).lower()},
                           want_npz=True)
@@ -282,10 +284,10 @@ class GrpcClient:
         from n3dmap.v1 import inference_pb2
 
         r = self._call(self._stub.Map, inference_pb2.MapRequest(views=self._views(frames), features=features))
-        out = {"info": _info(r.info), "grid": _grid(r.grid), "occupancy": codecs.tensor_to_numpy(r.occupancy, "occupancy"),
-               "heightmap": codecs.tensor_to_numpy(r.heightmap, "heightmap")}
-        if r.HasField("features"):
-            out["features"] = codecs.tensor_to_numpy(r.features, "features")
+        out = {"info": _info(r.info), "grid": _grid(r.grid)}
+        for name in ("observed", "occupancy", "heightmap", "features"):
+            if r.HasField(name):
+                out[name] = codecs.tensor_to_numpy(getattr(r, name), name)
         return out
 
     def _pair(self, frames0: Frames, frames1: Frames):

@@ -31,8 +31,8 @@ class ModuleUnavailable(ServiceError):
     """The loaded bundle lacks a module this route needs."""
 
     def __init__(self, route: str, missing: list[str], version: str):
-        super().__init__(f"route {route!r} needs module(s) {', '.join(missing)}, which bundle "
-                         f"{version!r} does not hold")
+        super().__init__(f"route {route!r} needs {', '.join(missing)}, which bundle {version!r} "
+                         f"does not provide")
         self.route = route
         self.missing = missing
 

@@ -80,11 +80,8 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         async def run():
             item = MapInput(views=wire.views_from_proto(request.views, "views"), features=request.features)
             answer = await self.runtime.infer("map", item, timeout_s=_deadline(context))
-            r = answer.result
-            return inference_pb2.MapResponse(
-                info=wire.info_proto(answer), grid=self._grid(), occupancy=codecs.numpy_to_tensor(r.occupancy),
-                heightmap=codecs.numpy_to_tensor(r.heightmap),
-                features=codecs.numpy_to_tensor(r.features) if r.features is not None else None)
+            arrays = {k: codecs.numpy_to_tensor(v) for k, v in wire.map_arrays(answer.result).items()}
+            return inference_pb2.MapResponse(info=wire.info_proto(answer), grid=self._grid(), **arrays)
         return await self._call("Map", context, run)
 
     def _pair(self, request) -> PairInput:
@@ -192,13 +189,13 @@ class _TokenInterceptor(grpc.aio.ServerInterceptor):
 
 async def start_grpc_server(runtime: Runtime, *, host: str, port: int, token: str | None = None,
                             tls_cert: bytes | None = None, tls_key: bytes | None = None
-                            ) -> tuple[grpc.aio.Server, int, health.HealthServicer]:
+                            ) -> tuple[grpc.aio.Server, int, health.aio.HealthServicer]:
     """Build, bind and start the server. Returns (server, bound port, health servicer)."""
     interceptors = [_TokenInterceptor(token)] if token else []
     server = grpc.aio.server(interceptors=interceptors,
                              options=channel_options() + [("grpc.so_reuseport", 0)])
     inference_pb2_grpc.add_InferenceServicer_to_server(InferenceServicer(runtime), server)
-    health_servicer = health.HealthServicer()
+    health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection.enable_server_reflection((SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), server)
     address = f"{host}:{port}"

@@ -96,7 +96,7 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
         if not hmac.compare_digest(got.encode(), f"Bearer {token}".encode()):
             raise _Unauthorized()
 
-    Auth = Annotated[None, Depends(check_token)]
+    guarded = [Depends(check_token)]
 
     @app.exception_handler(_Unauthorized)
     async def _unauthorized(request: Request, e: _Unauthorized):
@@ -155,11 +155,11 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
     grid = lambda: runtime.bundle.preset.grid.to_dict()  # noqa: E731 (current bundle's grid)
 
     # ------------------------------------------------------------------------------ routes
-    @app.post("/v1/map", response_model=schemas.MapResponseJSON, tags=["inference"],
+    @app.post("/v1/map", dependencies=guarded, response_model=schemas.MapResponseJSON, tags=["inference"],
               summary="Frames of one instant -> occupancy, heightmap (and features) in ref",
               openapi_extra=_request_body_schema(schemas.MapRequestJSON, "arrays rgb, depth, pix_T_cam[, world_T_cam]"),
               responses=_ERRORS)
-    async def map_route(request: Request, _: Auth,
+    async def map_route(request: Request,
                         features: Annotated[bool, Query(description="binary bodies: return features")] = False):
         kind, body = await parse(request, schemas.MapRequestJSON)
         if kind == "json":
@@ -181,20 +181,20 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
         check_pair(v0, v1, "views1")
         return body if kind == "json" else None, (v0, v1)
 
-    @app.post("/v1/egomotion", response_model=schemas.EgomotionResponseJSON, tags=["inference"],
+    @app.post("/v1/egomotion", dependencies=guarded, response_model=schemas.EgomotionResponseJSON, tags=["inference"],
               summary="Frame pair -> cam0_T_cam1 (rigid 4×4)",
               openapi_extra=_request_body_schema(schemas.PairRequestJSON, "arrays rgb0, depth0, pix_T_cam0, rgb1, ..."),
               responses=_ERRORS)
-    async def egomotion_route(request: Request, _: Auth):
+    async def egomotion_route(request: Request):
         _, (v0, v1) = await pair_item(request, schemas.PairRequestJSON)
         answer = await runtime.infer("egomotion", PairInput(views0=v0, views1=v1))
         return {"info": wire.info_dict(answer), "cam0_T_cam1": answer.result.cam0_T_cam1.tolist()}
 
-    @app.post("/v1/flow", response_model=schemas.FlowResponseJSON, tags=["inference"],
+    @app.post("/v1/flow", dependencies=guarded, response_model=schemas.FlowResponseJSON, tags=["inference"],
               summary="Frame pair -> 3D flow in ref (voxels, t0 -> t1)",
               openapi_extra=_request_body_schema(schemas.PairRequestJSON, "arrays rgb0, depth0, pix_T_cam0, rgb1, ..."),
               responses=_ERRORS)
-    async def flow_route(request: Request, _: Auth):
+    async def flow_route(request: Request):
         _, (v0, v1) = await pair_item(request, schemas.PairRequestJSON)
         answer = await runtime.infer("flow", PairInput(views0=v0, views1=v1))
         if wants_npz(request):
@@ -206,11 +206,11 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
                 "camera_id": views.camera_ids[0] if views.camera_ids else "", "sequence": views.sequence,
                 "source_timestamp": views.timestamp, "boxes": wire.boxes_dicts(answer.result, answer.frame)}
 
-    @app.post("/v1/detect", response_model=schemas.DetectionsResponseJSON, tags=["inference"],
+    @app.post("/v1/detect", dependencies=guarded, response_model=schemas.DetectionsResponseJSON, tags=["inference"],
               summary="Frames of one instant -> scored 3D boxes in ref",
               openapi_extra=_request_body_schema(schemas.DetectRequestJSON, "arrays rgb, depth, pix_T_cam[, world_T_cam]"),
               responses=_ERRORS)
-    async def detect_route(request: Request, _: Auth,
+    async def detect_route(request: Request,
                            min_score: Annotated[float, Query(ge=0, le=1, description="binary bodies")] = 0.0):
         kind, body = await parse(request, schemas.DetectRequestJSON)
         views = wire.views_from_json(body.views, "views") if kind == "json" else wire.views_from_npz(body)
@@ -218,26 +218,26 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
         answer = await runtime.infer("detect", DetectInput(views=views, min_score=score))
         return detections_json(answer, views)
 
-    @app.post("/v1/moving-objects", response_model=schemas.DetectionsResponseJSON, tags=["inference"],
+    @app.post("/v1/moving-objects", dependencies=guarded, response_model=schemas.DetectionsResponseJSON, tags=["inference"],
               summary="Frame pair -> moving objects (oriented boxes with velocities) in ref",
               openapi_extra=_request_body_schema(schemas.MovingObjectsRequestJSON, "arrays rgb0, depth0, ..., rgb1, ..."),
               responses=_ERRORS)
-    async def moving_route(request: Request, _: Auth,
+    async def moving_route(request: Request,
                            min_score: Annotated[float, Query(ge=0, le=1, description="binary bodies")] = 0.0):
         body, (v0, v1) = await pair_item(request, schemas.MovingObjectsRequestJSON)
         score = body.min_score if body is not None else check_min_score(min_score)
         answer = await runtime.infer("moving_objects", MovingInput(views0=v0, views1=v1, min_score=score))
         return detections_json(answer, v1)
 
-    @app.get("/v1/models", response_model=schemas.ModelsResponseJSON, tags=["admin"],
+    @app.get("/v1/models", dependencies=guarded, response_model=schemas.ModelsResponseJSON, tags=["admin"],
              summary="The loaded bundle: version, preset, modules, available routes")
-    async def models_route(_: Auth):
+    async def models_route():
         return runtime.describe()
 
-    @app.post("/v1/admin/reload", response_model=schemas.ModelsResponseJSON, tags=["admin"],
+    @app.post("/v1/admin/reload", dependencies=guarded, response_model=schemas.ModelsResponseJSON, tags=["admin"],
               summary="Load a bundle (default: the current directory again); the old one keeps serving on failure",
               responses={409: {"model": schemas.ErrorJSON, "description": "loading failed; old bundle still serves"}})
-    async def reload_route(_: Auth, body: schemas.ReloadRequestJSON | None = None):
+    async def reload_route(body: schemas.ReloadRequestJSON | None = None):
         try:
             return await runtime.reload(body.bundle if body else None)
         except BundleError as e:

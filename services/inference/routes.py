@@ -7,13 +7,13 @@ requests as one pipeline call (inputs stacked along B) and splits the outputs ba
 
 from __future__ import annotations
 
+import types
 from dataclasses import dataclass
 from typing import Any, Callable, Hashable
 
 import numpy as np
 import torch
 
-from core.geometry.grid import GridConfig
 from services.inference.validation import Views
 
 BOX_FRAME = "ref"  # boxes, volumes and poses of every answer live in `ref` = camera of views[0]
@@ -46,8 +46,9 @@ class MovingInput:
 
 @dataclass(frozen=True)
 class MapResult:
-    occupancy: np.ndarray             # Z×Y×X float32 in [0, 1]
-    heightmap: np.ndarray             # Z×X float32 metres (up = −y of ref); NaN where no voxel is occupied
+    observed: np.ndarray              # Z×Y×X float32 in {0, 1}: inside some view's frustum
+    occupancy: np.ndarray | None      # Z×Y×X float32 in [0, 1] (bundles with an occupancy head)
+    heightmap: np.ndarray | None      # Z×X float32 metres above the grid floor (ref y = ymax); 0 = empty
     features: np.ndarray | None       # F×Z×Y×X float32 (when asked)
 
 
@@ -74,7 +75,8 @@ class Route:
     """One inference route: the bundle modules it needs and its batched runner."""
 
     name: str
-    modules: tuple[str, ...]
+    modules: tuple[str, ...]          # bundle modules it needs
+    function: str                     # the core.pipeline function it calls
     batch_key: Callable[[Any], Hashable]
     run: Callable[[Any, list, torch.device], list]  # (bundle, inputs, device) -> results
 
@@ -91,35 +93,43 @@ def _views_tensors(views: list[Views], device: torch.device) -> dict[str, torch.
     }
 
 
-def heightmap_from_occupancy(occupancy: np.ndarray, grid: GridConfig, threshold: float = 0.5) -> np.ndarray:
-    """occupancy Z×Y×X -> Z×X height (metres, up = −y of ref) of the top occupied voxel; NaN if none.
-
-    Y points down, so the top occupied voxel of a column is the one with the smallest y index.
-    """
-    occupied = occupancy > threshold                                   # Z×Y×X
-    any_occ = occupied.any(axis=1)                                     # Z×X
-    top = np.argmax(occupied, axis=1)                                  # Z×X first (smallest) y index
-    y_ref = grid.ymin + (top + 0.5) * grid.voxel_size                  # centre of that voxel in ref
-    return np.where(any_occ, -y_ref, np.nan).astype(np.float32)
-
-
 def _numpy(t: torch.Tensor) -> np.ndarray:
     return t.detach().float().cpu().numpy()
 
 
-def _run_map(bundle, inputs: list[MapInput], device) -> list[MapResult]:
-    from core.pipeline import map_frames
+def pipeline_function(name: str) -> Callable | None:
+    """`core.pipeline.<name>` (or from one of its submodules); None if this build lacks it."""
+    import importlib
 
-    out = map_frames(bundle, **_views_tensors([i.views for i in inputs], device))
-    occupancy = _numpy(out["occupancy"])                               # B×1×Z×Y×X
+    def function_in(module) -> Callable | None:
+        found = getattr(module, name, None)  # `core.pipeline.detect` may be the submodule, not the function
+        return found if callable(found) and not isinstance(found, types.ModuleType) else None
+
+    found = function_in(importlib.import_module("core.pipeline"))
+    for sub in PIPELINE_SUBMODULES:
+        if found is not None:
+            break
+        try:
+            found = function_in(importlib.import_module(f"core.pipeline.{sub}"))
+        except ModuleNotFoundError as e:
+            if e.name != f"core.pipeline.{sub}":
+                raise
+    return found
+
+
+PIPELINE_SUBMODULES = ("map", "egomotion", "flow", "detect", "moving", "moving_objects")
+
+
+def _run_map(bundle, inputs: list[MapInput], device) -> list[MapResult]:
+    out = pipeline_function("map_frames")(bundle, **_views_tensors([i.views for i in inputs], device))
+    observed = _numpy(out["observed"])                                 # B×1×Z×Y×X
+    occupancy = _numpy(out["occupancy"]) if "occupancy" in out else None  # B×1×Z×Y×X
+    heightmap = _numpy(out["heightmap"]) if "heightmap" in out else None  # B×Z×X
     features = _numpy(out["features"]) if any(i.features for i in inputs) else None  # B×F×Z×Y×X
-    grid = bundle.preset.grid
-    results = []
-    for b, item in enumerate(inputs):
-        occ = occupancy[b, 0]                                          # Z×Y×X
-        results.append(MapResult(occupancy=occ, heightmap=heightmap_from_occupancy(occ, grid),
-                                 features=features[b] if item.features else None))
-    return results
+    return [MapResult(observed=observed[b, 0], occupancy=None if occupancy is None else occupancy[b, 0],
+                      heightmap=None if heightmap is None else heightmap[b],
+                      features=features[b] if item.features else None)
+            for b, item in enumerate(inputs)]
 
 
 def _pair_tensors(inputs: list, device) -> dict[str, torch.Tensor]:
@@ -129,21 +139,22 @@ def _pair_tensors(inputs: list, device) -> dict[str, torch.Tensor]:
 
 
 def _run_egomotion(bundle, inputs: list[PairInput], device) -> list[EgomotionResult]:
-    from core.pipeline import estimate_egomotion
-
-    out = _numpy(estimate_egomotion(bundle, **_pair_tensors(inputs, device))["cam0_T_cam1"])  # B×4×4
+    out = _numpy(pipeline_function("estimate_egomotion")(bundle, **_pair_tensors(inputs, device))["cam0_T_cam1"])  # B×4×4
     return [EgomotionResult(cam0_T_cam1=out[b]) for b in range(len(inputs))]
 
 
 def _run_flow(bundle, inputs: list[PairInput], device) -> list[FlowResult]:
-    from core.pipeline import estimate_flow
-
-    out = _numpy(estimate_flow(bundle, **_pair_tensors(inputs, device))["flow"])  # B×3×Z×Y×X
+    out = _numpy(pipeline_function("estimate_flow")(bundle, **_pair_tensors(inputs, device))["flow"])  # B×3×Z×Y×X
     return [FlowResult(flow=out[b]) for b in range(len(inputs))]
 
 
-def _split_boxes(out: dict, inputs: list, *, with_velocity: bool) -> list[DetectionsResult]:
-    """Pipeline boxes B×K×7, scores B×K, valid B×K (, velocities B×K×3) -> per-request results."""
+def _split_boxes(out, inputs: list, *, with_velocity: bool) -> list[DetectionsResult]:
+    """Pipeline boxes B×K×7, scores B×K, valid B×K (, velocities B×K×3) -> per-request results.
+
+    A per-item list of {"boxes": K_b×7, "scores": K_b[, "velocities": K_b×3]} is accepted too.
+    """
+    if isinstance(out, (list, tuple)):
+        out = _pad_items(out)
     boxes, scores = _numpy(out["boxes"]), _numpy(out["scores"])
     valid = out.get("valid")
     valid = valid.cpu().numpy().astype(bool) if valid is not None else np.ones(scores.shape, bool)
@@ -158,23 +169,39 @@ def _split_boxes(out: dict, inputs: list, *, with_velocity: bool) -> list[Detect
     return results
 
 
-def _run_detect(bundle, inputs: list[DetectInput], device) -> list[DetectionsResult]:
-    from core.pipeline import detect
+def _pad_items(items: list[dict]) -> dict[str, torch.Tensor]:
+    """Per-item dicts of K_b rows -> zero-padded B×K tensors with a `valid` mask."""
+    B, K = len(items), max([len(d["scores"]) for d in items] + [0])
+    boxes, scores = torch.zeros(B, K, 7), torch.zeros(B, K)
+    valid, velocities = torch.zeros(B, K, dtype=torch.bool), torch.zeros(B, K, 3)
+    for b, d in enumerate(items):
+        k = len(d["scores"])
+        boxes[b, :k] = torch.as_tensor(d["boxes"], dtype=torch.float32).reshape(k, 7)
+        scores[b, :k] = torch.as_tensor(d["scores"], dtype=torch.float32)
+        valid[b, :k] = True
+        if "velocities" in d:
+            velocities[b, :k] = torch.as_tensor(d["velocities"], dtype=torch.float32).reshape(k, 3)
+    return {"boxes": boxes, "scores": scores, "valid": valid, "velocities": velocities}
 
-    return _split_boxes(detect(bundle, **_views_tensors([i.views for i in inputs], device)), inputs,
-                        with_velocity=False)
+
+def _run_detect(bundle, inputs: list[DetectInput], device) -> list[DetectionsResult]:
+    detect = pipeline_function("detect")
+    out = detect(bundle, **_views_tensors([i.views for i in inputs], device),
+                 min_score=min(i.min_score for i in inputs))
+    return _split_boxes(out, inputs, with_velocity=False)
 
 
 def _run_moving(bundle, inputs: list[MovingInput], device) -> list[DetectionsResult]:
-    from core.pipeline import moving_objects
-
-    return _split_boxes(moving_objects(bundle, **_pair_tensors(inputs, device)), inputs, with_velocity=True)
+    out = pipeline_function("moving_objects")(bundle, **_pair_tensors(inputs, device))
+    return _split_boxes(out, inputs, with_velocity=True)
 
 
 ROUTES: dict[str, Route] = {r.name: r for r in (
-    Route("map", ("mapper",), lambda i: ("map", i.views.shape_key, i.features), _run_map),
-    Route("egomotion", ("mapper", "egomotion"), lambda i: ("egomotion", i.views0.shape_key), _run_egomotion),
-    Route("flow", ("mapper", "flow"), lambda i: ("flow", i.views0.shape_key), _run_flow),
-    Route("detect", ("mapper", "detector"), lambda i: ("detect", i.views.shape_key), _run_detect),
-    Route("moving_objects", ("mapper", "flow"), lambda i: ("moving_objects", i.views0.shape_key), _run_moving),
+    Route("map", ("mapper",), "map_frames", lambda i: ("map", i.views.shape_key, i.features), _run_map),
+    Route("egomotion", ("egomotion",), "estimate_egomotion", lambda i: ("egomotion", i.views0.shape_key),
+          _run_egomotion),
+    Route("flow", ("mapper", "flow"), "estimate_flow", lambda i: ("flow", i.views0.shape_key), _run_flow),
+    Route("detect", ("mapper", "detector"), "detect", lambda i: ("detect", i.views.shape_key), _run_detect),
+    Route("moving_objects", ("mapper", "flow"), "moving_objects", lambda i: ("moving_objects", i.views0.shape_key),
+          _run_moving),
 )}

@@ -72,8 +72,17 @@ def resolve_device(name: str) -> torch.device:
 
 
 def bundle_version(bundle) -> str:
-    meta = getattr(bundle, "meta", {}) or {}
-    return str(meta.get("version") or meta.get("name") or "unversioned")
+    return str(getattr(bundle, "version", None) or "unversioned")
+
+
+def _missing(route: Route, bundle) -> list[str]:
+    """What `route` lacks: bundle modules, or the core.pipeline function in this build."""
+    from services.inference.routes import pipeline_function
+
+    missing = [m for m in route.modules if m not in bundle.modules]
+    if not missing and pipeline_function(route.function) is None:
+        missing = [f"core.pipeline.{route.function} (not in this build)"]
+    return missing
 
 
 def _load(path: str, device: torch.device) -> _Loaded:
@@ -139,8 +148,7 @@ class Runtime:
 
     @property
     def routes(self) -> list[str]:
-        have = set(self._loaded.bundle.modules)
-        return [name for name, r in ROUTES.items() if set(r.modules) <= have]
+        return [name for name, r in ROUTES.items() if not _missing(r, self._loaded.bundle)]
 
     @property
     def queued(self) -> int:
@@ -159,7 +167,7 @@ class Runtime:
     def require(self, route: str) -> Route:
         """The route, or ModuleUnavailable if the loaded bundle lacks one of its modules."""
         r = ROUTES[route]
-        missing = [m for m in r.modules if m not in self._loaded.bundle.modules]
+        missing = _missing(r, self._loaded.bundle)
         if missing:
             raise ModuleUnavailable(route, missing, self.version)
         return r
@@ -183,7 +191,7 @@ class Runtime:
     def _run_batch(self, key, items: list) -> list:
         loaded = self._loaded  # one bundle for the whole batch, even if a reload swaps meanwhile
         route = ROUTES[key[0]]
-        missing = [m for m in route.modules if m not in loaded.bundle.modules]
+        missing = _missing(route, loaded.bundle)
         if missing:  # a reload removed the module while the request waited
             raise ModuleUnavailable(route.name, missing, loaded.version)
         with torch.inference_mode():

@@ -104,8 +104,10 @@ class GridJSON(BaseModel):
 class MapResponseJSON(BaseModel):
     info: ResponseInfoJSON
     grid: GridJSON
-    occupancy: TensorJSON = Field(description="Z×Y×X float32 in [0, 1]")
-    heightmap: TensorJSON = Field(description="Z×X float32 metres (up = −y of ref), NaN = empty column")
+    observed: TensorJSON = Field(description="Z×Y×X float32 in {0, 1}: inside some view's frustum")
+    occupancy: TensorJSON | None = Field(None, description="Z×Y×X float32 in [0, 1] (bundles with an occupancy head)")
+    heightmap: TensorJSON | None = Field(None, description="Z×X float32 metres above the grid floor (ref y = ymax) "
+                                                          "of the highest occupied voxel's top face; 0 = empty column")
     features: TensorJSON | None = Field(None, description="F×Z×Y×X float32, when asked")
 
 

@@ -120,10 +120,10 @@ def boxes_dicts(result: DetectionsResult, frame: str) -> list[dict]:
 
 
 def map_arrays(result: MapResult) -> dict[str, np.ndarray]:
-    out = {"occupancy": result.occupancy, "heightmap": result.heightmap}
-    if result.features is not None:
-        out["features"] = result.features
-    return out
+    """The arrays a map answer holds (occupancy and heightmap only with an occupancy head)."""
+    out = {"observed": result.observed, "occupancy": result.occupancy, "heightmap": result.heightmap,
+           "features": result.features}
+    return {k: v for k, v in out.items() if v is not None}
 
 
 def info_proto(answer: Answer) -> inference_pb2.ResponseInfo:
