@@ -157,6 +157,16 @@ def _is_dataset_file(name: str) -> bool:
     return name == MANIFEST_NAME or bool(_SHARD_RE.match(name)) or name.endswith(_PARTIAL_SUFFIX)
 
 
+def check_output_dir(out_dir: str | os.PathLike, *, overwrite: bool) -> None:
+    """DataError unless `out_dir` is absent, an empty directory, or `overwrite` is set (a cheap check
+    callers run before expensive work; write_dataset runs it again)."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise DataError(f"{out} exists and is not a directory")
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise DataError(f"{out} is not empty; choose an empty directory or overwrite")
+
+
 def write_dataset(out_dir: str | os.PathLike, records: Iterable[Mapping[str, np.ndarray]], *,
                   split: str, preset_name: str, grid: Mapping, generator: Mapping, seed: int | None,
                   shard_bytes: int = DEFAULT_SHARD_BYTES, overwrite: bool = False,
@@ -178,10 +188,7 @@ def write_dataset(out_dir: str | os.PathLike, records: Iterable[Mapping[str, np.
     out = Path(out_dir)
     if shard_bytes <= 0:
         raise DataError(f"shard_bytes must be positive, got {shard_bytes}")
-    if out.exists() and not out.is_dir():
-        raise DataError(f"{out} exists and is not a directory")
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise DataError(f"{out} is not empty; choose an empty directory or overwrite")
+    check_output_dir(out, overwrite=overwrite)
     out.mkdir(parents=True, exist_ok=True)
     for stale in out.iterdir():
         if stale.name.endswith(_PARTIAL_SUFFIX):

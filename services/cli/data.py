@@ -134,28 +134,34 @@ def _shard_bytes(mb: float) -> int:
 
 
 class _Progress:
-    """A stderr progress bar (tqdm); closed before any error message is printed."""
+    """A stderr progress bar (tqdm), opened at the first record so that errors found before any work
+    (a bad path, a non-empty --out) print as one line with no bar; closed before any error is printed."""
 
     def __init__(self, total: int | None, desc: str) -> None:
-        from tqdm import tqdm
-        self._bar = tqdm(total=total, desc=desc, unit="rec", file=sys.stderr, mininterval=0.5,
-                         dynamic_ncols=True)
+        self._total, self._desc, self._bar = total, desc, None
 
     def __call__(self, count: int, key: str) -> None:
+        if self._bar is None:
+            from tqdm import tqdm
+            self._bar = tqdm(total=self._total, desc=self._desc, unit="rec", file=sys.stderr,
+                             mininterval=0.5, dynamic_ncols=True)
         self._bar.update(count - self._bar.n)
 
     def __enter__(self) -> "_Progress":
         return self
 
     def __exit__(self, *exc) -> None:
-        self._bar.close()
+        if self._bar is not None:
+            self._bar.close()
 
 
 # ----------------------------------------------------------------------------- generate
 
 def cmd_generate(args: argparse.Namespace) -> int:
-    from core.data.shards import write_dataset
+    from core.data.shards import check_output_dir, write_dataset
     from core.presets import get_preset
+
+    check_output_dir(args.out, overwrite=args.overwrite)   # before the (slow) generator import
     try:
         from core.synthetic import generate_record
     except ImportError:
@@ -248,13 +254,13 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 def cmd_preview(args: argparse.Namespace) -> int:
     from core.data.shards import ShardDataset
-    from services.viz.preview import contact_sheet
 
     ds = ShardDataset(args.dir)
     n = len(ds)
     if not -n <= args.index < n:
         raise N3dmapError(f"--index {args.index} is out of range for {args.dir} ({n} records)")
     record = ds[args.index]
+    from services.viz.preview import contact_sheet   # matplotlib only once there is a record to draw
     key = ds.key(args.index)
     title = f"{args.dir.name}: record {args.index % n} ({key}), preset {ds.manifest.get('preset')}, " \
             f"split {ds.manifest.get('split')}"
@@ -266,8 +272,10 @@ def cmd_preview(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------- import
 
 def _run_import(args: argparse.Namespace, fn: Callable[..., dict], **options) -> int:
+    from core.data.shards import check_output_dir
     from core.presets import get_preset
 
+    check_output_dir(args.out, overwrite=args.overwrite)
     preset = get_preset(args.preset)
     with _Progress(args.limit, f"import {args.import_format}") as progress:
         manifest = fn(args.src, args.out, split=args.split, preset_name=preset.name,
