@@ -7,20 +7,24 @@ import json
 
 
 def describe_bundle(path: str) -> dict:
-    """A JSON-ready description of the bundle at `path` (BundleError if missing or corrupt)."""
+    """A JSON-ready description of the bundle at `path` (BundleError if missing or corrupt).
+
+    Loads the weights too, so a bundle that describes fine also loads.
+    """
     from core.bundle import load_bundle
 
     bundle = load_bundle(path, "cpu")
-    meta = dict(bundle.meta)
-    preset = bundle.preset
-    modules = {name: {"kind": type(m).__name__,
+    meta = bundle.meta
+    modules = {name: {"kind": meta["modules"][name].get("kind", type(m).__name__),
                       "parameters": sum(p.numel() for p in m.parameters())}
                for name, m in sorted(bundle.modules.items())}
     return {
         "path": str(path),
-        "version": meta.get("version"),
-        "preset": getattr(preset, "name", preset),
-        "grid": preset.grid.to_dict() if hasattr(preset, "grid") else meta.get("grid"),
+        "version": bundle.version,
+        "format_version": meta.get("format_version"),
+        "n3dmap_version": meta.get("n3dmap_version"),
+        "preset": bundle.preset.name,
+        "grid": bundle.preset.grid.to_dict(),
         "modules": modules,
         "total_parameters": sum(m["parameters"] for m in modules.values()),
         "provenance": meta.get("provenance", {}),
@@ -43,7 +47,8 @@ def format_description(d: dict) -> str:
         lines.append(f"    {name:<{width}}  {m['kind']:<20} {m['parameters']:>12,}")
     if d["provenance"]:
         lines.append("  provenance")
-        lines += [f"    {k}: {v}" for k, v in sorted(d["provenance"].items())]
+        lines += [f"    {k}: {json.dumps(v) if isinstance(v, (dict, list)) else v}"
+                  for k, v in sorted(d["provenance"].items())]
     if d["metrics"]:
         lines.append("  metrics")
         lines += [f"    {k}: {v:.6g}" if isinstance(v, float) else f"    {k}: {v}"

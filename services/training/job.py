@@ -189,17 +189,20 @@ def _root_cause_line(error: BaseException) -> str:
 def export_bundle(config: TrainJobConfig, checkpoint_dir: str | Path, *, outcome: LoopOutcome,
                   manifest: dict, spec: TaskSpec = CORE_TASKS) -> Path:
     """Write RUN_DIR/bundle/ from the final checkpoint (plus any --init modules the task lacks)."""
-    from core.bundle import load_bundle, save_bundle
+    from core.bundle import load_bundle, merged_modules, parent_provenance, save_bundle
     from core.presets import get_preset
 
     device = torch.device("cpu")
     task = spec.build(config, device)
     state = load_checkpoint(checkpoint_dir, task=task)
-    modules: dict[str, torch.nn.Module] = {}
+    modules = dict(spec.exported(task))
+    parents = []
     if config.init_bundle:
-        # Keep what the init bundle had (e.g. the pretrained projector) next to what this task trained.
-        modules.update(load_bundle(config.init_bundle, device).modules)
-    modules.update(spec.exported(task))
+        # Keep what the init bundle had (e.g. the pretrained projector) next to what this task trained;
+        # modules of the same name come from this run (fine-tuned or copied-then-frozen).
+        parent = load_bundle(config.init_bundle, device)
+        modules = merged_modules(parent, modules, replace=True)
+        parents.append(parent_provenance(parent))
     last = outcome.last_metrics or state.metrics
     metrics = {f"last_{k}": float(v) for k, v in last.items()}
     metrics.update({f"mean_{k}": float(v) for k, v in outcome.mean_metrics.items()})
@@ -218,6 +221,8 @@ def export_bundle(config: TrainJobConfig, checkpoint_dir: str | Path, *, outcome
         "frozen": list(config.freeze),
         "git_commit": git_commit(),
         "run_dir": config.run_dir,
+        "run_id": config.run_path.name,
+        "parents": parents,
     }
     save_bundle(config.bundle_path, modules=modules, preset=get_preset(config.preset),
                 provenance=provenance, metrics=metrics)

@@ -143,7 +143,13 @@ def load_init_bundle(exported: dict[str, torch.nn.Module], bundle_dir: str, *, p
     loaded = []
     for name, module in bundle.modules.items():
         if name in exported:
-            exported[name].load_state_dict(module.state_dict())
+            try:
+                exported[name].load_state_dict(module.state_dict())
+            except RuntimeError as e:
+                detail = next((line.strip() for line in str(e).splitlines() if "mismatch" in line
+                               or "Missing" in line or "Unexpected" in line), "incompatible weights")
+                raise TrainingError(f"--init {bundle_dir}: module {name!r} does not fit this task "
+                                    f"({detail})") from None
             loaded.append(name)
     if not loaded:
         raise TrainingError(f"--init {bundle_dir}: none of its modules {sorted(bundle.modules)} "

@@ -38,7 +38,10 @@ class LocalSession:
 
     rank = 0
     world_size = 1
-    progress_stream = sys.stdout
+
+    @property
+    def progress_stream(self):
+        return sys.stdout  # looked up on use: the caller (or pytest) may have replaced it
 
     def __init__(self, config: TrainJobConfig, *, dataset=None) -> None:
         """dataset: anything with len() and [i] → record; default: ShardDataset(config.data_dir)."""

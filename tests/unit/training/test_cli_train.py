@@ -1,0 +1,83 @@
+"""CLI errors of `n3dmap train` / `jobs` / `bundle`: one line on stderr, exit 2; argv forwarding."""
+
+import pytest
+
+from services.cli.main import build_parser, main
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    return err[0]
+
+
+def test_missing_data_dir_is_one_line_exit_2(tmp_path, capsys):
+    rc = main(["train", "pretrain", "--data", str(tmp_path / "nope"), "--run-dir", str(tmp_path / "r"),
+               "--workers", "0"])
+    assert rc == 2
+    assert _one_error_line(capsys) == f"n3dmap train: error: --data {tmp_path / 'nope'}: no such dataset directory"
+
+
+def test_data_dir_without_manifest_is_one_line_exit_2(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    rc = main(["train", "pretrain", "--data", str(tmp_path / "empty"), "--run-dir", str(tmp_path / "r"),
+               "--workers", "0"])
+    assert rc == 2
+    assert "has no manifest.json" in _one_error_line(capsys)
+
+
+@pytest.mark.parametrize("flag, value, message", [
+    ("--workers", "-1", "--workers must be >= 0"),
+    ("--steps", "0", "--steps must be >= 1"),
+    ("--preset", "huge", "unknown preset 'huge'"),
+])
+def test_bad_options_are_one_line_exit_2(tmp_path, capsys, flag, value, message):
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "manifest.json").write_text("{}")
+    rc = main(["train", "pretrain", "--data", str(data), "--run-dir", str(tmp_path / "r"), "--workers", "0",
+               flag, value])
+    assert rc == 2
+    assert message in _one_error_line(capsys)
+
+
+def test_jobs_without_address_is_one_line_exit_2(capsys, monkeypatch):
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    assert main(["jobs", "list"]) == 2
+    assert "no --address given" in _one_error_line(capsys)
+
+
+def test_jobs_with_unreachable_address_is_one_line_exit_2(capsys):
+    import socket
+
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    assert main(["jobs", "status", "raysubmit_x", "--address", f"127.0.0.1:{port}"]) == 2
+    assert f"http://127.0.0.1:{port}" in _one_error_line(capsys)
+
+
+def test_bundle_info_of_a_non_bundle_is_one_line_exit_2(tmp_path, capsys):
+    assert main(["bundle", "info", str(tmp_path)]) == 2
+    assert "not a bundle" in _one_error_line(capsys)
+
+
+def test_forwarded_argv_drops_submission_flags_and_makes_paths_absolute(tmp_path, monkeypatch):
+    from services.cli.train import forwarded_argv
+
+    monkeypatch.chdir(tmp_path)
+    args = build_parser().parse_args(
+        ["train", "pretrain", "--data", "d", "--run-dir", "r", "--objective", "regression", "--steps", "7",
+         "--freeze-features", "--address", "http://h:8265", "--follow", "--workers", "2"])
+    argv = forwarded_argv("pretrain", args)
+    assert argv[:2] == ["train", "pretrain"] and argv[-1] == "--attach"
+    assert "--address" not in argv and "--follow" not in argv
+    assert "--freeze-features" in argv
+    assert str(tmp_path / "d") in argv and str(tmp_path / "r") in argv
+    assert "--steps" in argv and argv[argv.index("--steps") + 1] == "7"
+    assert argv[argv.index("--objective") + 1] == "regression"
+    # Parsing the forwarded command gives the same options back.
+    again = build_parser().parse_args(argv)
+    for name in ("steps", "objective", "freeze_features", "workers"):
+        assert getattr(again, name) == getattr(args, name)
+    assert again.attach and again.address is None
