@@ -205,6 +205,8 @@ def write_dataset(out_dir: str | os.PathLike, records: Iterable[Mapping[str, np.
     count = 0
     try:
         for i, rec in enumerate(records):
+            if not isinstance(rec, Mapping):
+                raise DataError(f"record {i}: a record must be a dict of arrays, got {type(rec).__name__}")
             key = rec.get(KEY_FIELD, f"ep{i:06d}")
             where = f"record {i} ({key})"
             if not isinstance(key, str) or not _KEY_RE.match(key):
