@@ -4,5 +4,6 @@ Each function takes batched tensors on the bundle's device and returns a dict of
 """
 
 from core.pipeline.map import map_frames
+from core.pipeline.moving import moving_objects
 
-__all__ = ["map_frames"]
+__all__ = ["map_frames", "moving_objects"]
