@@ -1,6 +1,8 @@
 """The `n3dmap` console command: one argparse tree, one subcommand module per area.
 
 Each area module exposes `register(subparsers)`, adding its parser(s) with `set_defaults(func=...)`.
+Only the area being run is imported (torch, Ray, matplotlib and gRPC make a full import cost seconds);
+the others appear in `n3dmap --help` through their one-line summaries below.
 Errors the user can fix (N3dmapError, CliError, missing files) print one line naming what is wrong
 and exit 2 — never a traceback.
 """
@@ -11,16 +13,33 @@ import argparse
 import importlib
 import sys
 
-# Area modules, in the order they appear in `n3dmap --help`. A module that is absent (not yet
-# built) is skipped, so the CLI never fails to start because one area is missing.
-AREAS = ("data", "train", "jobs", "bundle", "eval", "bench", "serve", "stream")
+from services.cli.errors import CliError  # noqa: F401  (re-exported: area modules raise it)
+
+# Area modules, in the order they appear in `n3dmap --help`, with their summaries.
+AREAS: dict[str, str] = {
+    "data": "generate, import, inspect and preview datasets",
+    "train": "train a task (pretrain, egomotion, occupancy, flow, detector) on Ray Train",
+    "jobs": "list / inspect / stop training jobs on a Ray cluster",
+    "bundle": "inspect model bundles",
+    "eval": "evaluate a bundle on a dataset and write a report",
+    "bench": "benchmarks that reproduce the paper's tables on the synthetic world",
+    "serve": "serve a model bundle over REST (FastAPI) and gRPC",
+    "stream": "live RGB-D over zenoh: bridge, simulated camera, listener",
+}
 
 
-class CliError(Exception):
-    """A user-facing error: printed as one line, exit status 2."""
+def _area_module(area: str):
+    try:
+        return importlib.import_module(f"services.cli.{area}")
+    except ModuleNotFoundError as e:
+        if e.name == f"services.cli.{area}":
+            return None  # that area is not part of this build
+        raise
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None, *, full: bool = False) -> argparse.ArgumentParser:
+    """The parser; with `full=True` every area registers its real subcommands (tests use this to
+    check manifests and docs against the real options), else only the one named in `argv`."""
     parser = argparse.ArgumentParser(
         prog="n3dmap",
         description="n3dmap: learn 3D feature maps from RGB-D video by view-contrastive prediction; "
@@ -28,14 +47,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"n3dmap {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for area in AREAS:
-        try:
-            module = importlib.import_module(f"services.cli.{area}")
-        except ModuleNotFoundError as e:
-            if e.name == f"services.cli.{area}":
-                continue
-            raise
-        module.register(sub)
+    wanted = next((a for a in (argv or []) if not a.startswith("-")), None)
+    for area, summary in AREAS.items():
+        module = _area_module(area) if (full or area == wanted) else None
+        if module is not None:
+            module.register(sub)
+        elif full or area != wanted:
+            if full:
+                continue  # absent from this build
+            sub.add_parser(area, help=summary, add_help=False)
     return parser
 
 
@@ -47,8 +67,11 @@ def _version() -> str:
 def main(argv: list[str] | None = None) -> int:
     from core.errors import N3dmapError
 
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
+    if not hasattr(args, "func"):  # an area absent from this build
+        parser.error(f"{args.command}: not available in this build")
     try:
         result = args.func(args)
     except (N3dmapError, CliError, FileNotFoundError, NotADirectoryError, PermissionError) as e:
