@@ -46,31 +46,36 @@ def render(*, pix_T_cam: torch.Tensor, world_T_cam: torch.Tensor, H: int, W: int
     u, v = tile_pixels(H, W, tile, dtype=dtype, device=device)  # N each, tile-major
     t_box, box_index = cast_boxes(pix_T_cam, world_T_cam, boxes_world, box_valid, H, W, tile=tile)  # C×N
 
-    # Ground and sky, densely, in ref0 (ground at y = ground_y, road along ref0 z).
+    # Ground and sky in ref0 (ground at y = ground_y, road along ref0 z); textures only where seen.
     origin, A = ray_affine(pix_T_cam, ref0_T_world @ world_T_cam)  # C×3, C×3×3
     t_ground, d_y = cast_ground(origin, A, u, v, ground_y)  # C×N
     d_x = A[:, 0, 0:1] * u + A[:, 0, 1:2] * v + A[:, 0, 2:3]  # C×N
     d_z = A[:, 2, 0:1] * u + A[:, 2, 1:2] * v + A[:, 2, 2:3]
-    hit_box = t_box < t_ground  # C×N
+    hit_box = t_box < t_ground  # C×N (inf < inf is False)
     t = torch.minimum(t_box, t_ground)
-    hit_any = torch.isfinite(t)
-    t_g = torch.where(torch.isfinite(t_ground), t_ground, 0.0)
-    gx = origin[:, 0:1] + t_g * d_x  # C×N
-    gz = origin[:, 2:3] + t_g * d_z
-    ground_rgb = tex.ground_albedo(gx.reshape(-1), gz.reshape(-1), lattice, road_half_width=cfg.road_half_width,
-                                   sidewalk_width=cfg.sidewalk_width, noise_scale=cfg.ground_noise_scale)  # C·N×3
-    up = torch.tensor([[0.0, -1.0, 0.0]], dtype=dtype, device=device)
-    ground_rgb = ground_rgb * _lambert(up)
-    sky_rgb = tex.sky_colour((-d_y / torch.sqrt(d_x * d_x + d_y * d_y + d_z * d_z)).reshape(-1))  # C·N×3
-    rgb = torch.where(torch.isfinite(t_ground).reshape(-1, 1), ground_rgb, sky_rgb)  # C·N×3
+    N = u.shape[0]
+    rgb = torch.empty(C * N, 3, dtype=dtype, device=device)
+    on_ground = (torch.isfinite(t_ground) & ~hit_box).reshape(-1).nonzero(as_tuple=True)[0]  # Ng flat indices
+    if on_ground.numel() > 0:
+        cam = on_ground // N
+        tg = t_ground.reshape(-1).index_select(0, on_ground)
+        gx = origin[:, 0].index_select(0, cam) + tg * d_x.reshape(-1).index_select(0, on_ground)  # Ng
+        gz = origin[:, 2].index_select(0, cam) + tg * d_z.reshape(-1).index_select(0, on_ground)
+        albedo = tex.ground_albedo(gx, gz, lattice, road_half_width=cfg.road_half_width,
+                                   sidewalk_width=cfg.sidewalk_width, noise_scale=cfg.ground_noise_scale)  # Ng×3
+        up = torch.tensor([[0.0, -1.0, 0.0]], dtype=dtype, device=device)
+        rgb.index_copy_(0, on_ground, albedo * _lambert(up))
+    in_sky = (~torch.isfinite(t)).reshape(-1).nonzero(as_tuple=True)[0]  # Ns
+    if in_sky.numel() > 0:
+        sx, sy, sz = (d.reshape(-1).index_select(0, in_sky) for d in (d_x, d_y, d_z))
+        rgb.index_copy_(0, in_sky, tex.sky_colour(-sy / torch.sqrt(sx * sx + sy * sy + sz * sz)))
 
     # Boxes: texture in the object frame, normal of the face that was hit.
     hits = hit_box.reshape(-1).nonzero(as_tuple=True)[0]  # Nb flat indices into C·N
     if hits.numel() > 0:
-        N = u.shape[0]
         B = boxes_world.shape[1]
         cam, pix = hits // N, hits % N
-        b = box_index.reshape(-1)[hits]  # Nb
+        b = box_index.reshape(-1).index_select(0, hits)  # Nb
         # Per (camera, box) pair: ray origin and ray map in the object frame, rotation obj -> ref0.
         o_w, A_w = ray_affine(pix_T_cam, world_T_cam)  # C×3, C×3×3
         obj_T_world = se3.invert(gboxes.box_T_obj(boxes_world))  # C×B×4×4
@@ -80,18 +85,18 @@ def render(*, pix_T_cam: torch.Tensor, world_T_cam: torch.Tensor, H: int, W: int
         R_ref0_obj = ref0_T_world[:3, :3] @ R_ow.transpose(-1, -2)  # C×B×3×3 (lights are fixed in ref0)
         table = torch.cat([o_loc, A_loc.flatten(-2), R_ref0_obj.flatten(-2), 0.5 * boxes_world[..., 3:6]],
                           dim=-1).reshape(C * B, 24)  # C·B×24
-        rows = table[cam * B + b]  # Nb×24
-        uv1 = torch.stack([u[pix], v[pix], torch.ones_like(pix, dtype=dtype)], -1)  # Nb×3
-        d_loc = (rows[:, 3:12].reshape(-1, 3, 3) @ uv1.unsqueeze(-1)).squeeze(-1)  # Nb×3
-        p_local = rows[:, 0:3] + t_box.reshape(-1)[hits].unsqueeze(-1) * d_loc  # Nb×3
+        rows = table.index_select(0, cam * B + b)  # Nb×24
+        pu, pv = u.index_select(0, pix).unsqueeze(-1), v.index_select(0, pix).unsqueeze(-1)  # Nb×1
+        d_loc = rows[:, 3:12:3] * pu + rows[:, 4:12:3] * pv + rows[:, 5:12:3]  # Nb×3, A_loc @ (u, v, 1)
+        p_local = rows[:, 0:3] + t_box.reshape(-1).index_select(0, hits).unsqueeze(-1) * d_loc  # Nb×3
         half = rows[:, 21:24]  # Nb×3
         face_axis = (p_local.abs() / half).argmax(-1)  # Nb: the face the point lies on
         sign = torch.gather(p_local, 1, face_axis.unsqueeze(-1)).sign()  # Nb×1
         R = rows[:, 12:21].reshape(-1, 3, 3)  # Nb×3×3
         normal = torch.gather(R, 2, face_axis.view(-1, 1, 1).expand(-1, 3, 1)).squeeze(-1) * sign  # Nb×3, ref0
-        albedo = tex.object_albedo(p_local, face_axis, half, box_textures[b], lattice)
-        rgb[hits] = albedo * _lambert(normal)
+        albedo = tex.object_albedo(p_local, face_axis, half, box_textures.index_select(0, b), lattice)
+        rgb.index_copy_(0, hits, albedo * _lambert(normal))
 
-    depth = torch.where(hit_any & (t <= cfg.max_depth), t, 0.0)  # C×N
+    depth = torch.where(t <= cfg.max_depth, t, 0.0)  # C×N (inf: no hit)
     rgb = tiles_to_image(rgb.reshape(C, -1, 3).clamp(0.0, 1.0), H, W, tile)  # C×H×W×3
     return rgb, tiles_to_image(depth, H, W, tile)

@@ -70,47 +70,45 @@ def sample_world_T_ref0(rng: np.random.Generator, cfg: WorldConfig) -> torch.Ten
 
 # ----------------------------------------------------------------------------- overlap helpers
 
-def _bev_overlap(a: np.ndarray, b: np.ndarray, margin: float) -> bool:
-    """Do two boxes (rows x,y,z,lx,ly,lz,yaw) overlap in bird's-eye view (x, z), each grown by `margin`?
-    Separating-axis test on the two rectangles."""
-    def axes(box):
-        c, s = math.cos(box[6]), math.sin(box[6])
-        return np.array([[c, -s], [s, c]])  # object x and z axes in (x, z)
-    ha = np.array([a[3], a[5]]) * 0.5 + margin
-    hb = np.array([b[3], b[5]]) * 0.5 + margin
+def _bev_overlap(a: np.ndarray, b: np.ndarray, margin: float) -> np.ndarray:
+    """Do boxes (rows x,y,z,lx,ly,lz,yaw) overlap in bird's-eye view (x, z), each grown by `margin`?
+    Separating-axis test on the two rectangles. a, b: ...×7 (broadcast) -> ... bool."""
+    def axes(box):  # ...×2×2: rows are the object's x and z axes in (x, z)
+        c, s = np.cos(box[..., 6]), np.sin(box[..., 6])
+        return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+    a, b = np.broadcast_arrays(a, b)
+    ha = a[..., [3, 5]] * 0.5 + margin  # ...×2
+    hb = b[..., [3, 5]] * 0.5 + margin
     Aa, Ab = axes(a), axes(b)
-    d = np.array([b[0] - a[0], b[2] - a[2]])
-    for axis in (*Aa, *Ab):
-        ra = np.abs(Aa @ axis) @ ha
-        rb = np.abs(Ab @ axis) @ hb
-        if abs(d @ axis) > ra + rb:
-            return False
-    return True
+    d = b[..., [0, 2]] - a[..., [0, 2]]  # ...×2
+    separated = np.zeros(a.shape[:-1], bool)
+    for axis in (Aa[..., 0, :], Aa[..., 1, :], Ab[..., 0, :], Ab[..., 1, :]):  # ...×2 each
+        ra = (np.abs(np.einsum("...ij,...j->...i", Aa, axis)) * ha).sum(-1)
+        rb = (np.abs(np.einsum("...ij,...j->...i", Ab, axis)) * hb).sum(-1)
+        separated |= np.abs((d * axis).sum(-1)) > ra + rb
+    return ~separated
 
 
-def _overlaps_any(box_T: np.ndarray, others: list[np.ndarray], margin: float) -> bool:
-    """box_T: T×7 (or 1×7 static), others: list of T×7 / 1×7 -> any BEV overlap at any step."""
-    for other in others:
-        n = max(len(box_T), len(other))
-        for t in range(n):
-            if _bev_overlap(box_T[min(t, len(box_T) - 1)], other[min(t, len(other) - 1)], margin):
-                return True
-    return False
+def _overlaps_any(track: np.ndarray, others: np.ndarray, margin: float) -> bool:
+    """track: T×7 (or 1×7 static), others: M×T×7 (or M×1×7) -> any BEV overlap at any step."""
+    if len(others) == 0:
+        return False
+    return bool(_bev_overlap(track[None], others, margin).any())
 
 
-def _blocks_views(box: np.ndarray, cam_centres: torch.Tensor, targets: torch.Tensor, clearance: float) -> bool:
-    """Does a static box (7,) come within `clearance` of a camera centre, or cut the segment from a camera
-    to its target? cam_centres, targets: N×3 in the box's frame."""
-    grown = torch.from_numpy(box.copy())
-    grown[3:6] += 2.0 * clearance
-    obj_T_frame = se3.invert(gboxes.box_T_obj(grown.view(1, 1, 7)))[0, 0]  # 4×4
-    o = se3.apply(obj_T_frame, cam_centres)  # N×3
-    half = grown[3:6] * 0.5
-    if bool((o.abs() < half).all(-1).any()):
-        return True
-    d = se3.apply(obj_T_frame, targets) - o  # N×3, segment as a ray with t in [0, 1]
-    t = ray_box_t(o, d, half.expand_as(o), near=0.0)
-    return bool((t <= 1.0).any())
+def _blocks_views(boxes: np.ndarray, cam_centres: torch.Tensor, targets: torch.Tensor, clearance: float) -> np.ndarray:
+    """Which static boxes (M×7) come within `clearance` of a camera centre, or cut the segment from a
+    camera to its target? cam_centres, targets: N×3 in the boxes' frame -> M bool."""
+    grown = torch.from_numpy(boxes.copy())
+    grown[:, 3:6] += 2.0 * clearance
+    obj_T_frame = se3.invert(gboxes.box_T_obj(grown))  # M×4×4
+    M, N = grown.shape[0], cam_centres.shape[0]
+    o = se3.apply(obj_T_frame, cam_centres.expand(M, N, 3))  # M×N×3
+    half = 0.5 * grown[:, None, 3:6].expand(M, N, 3)
+    inside = (o.abs() < half).all(-1).any(-1)  # M
+    d = se3.apply(obj_T_frame, targets.expand(M, N, 3)) - o  # M×N×3, segment as a ray with t in [0, 1]
+    cut = (ray_box_t(o, d, half, near=0.0) <= 1.0).any(-1)  # M
+    return (inside | cut).numpy()
 
 
 # ----------------------------------------------------------------------------- vehicles
@@ -232,19 +230,19 @@ def sample_scene(rng: np.random.Generator, *, T: int, V: int, cfg: WorldConfig, 
         anchor_z = float(ref0_T_ref[T // 2, 2, 3])  # place things around the ego's mid-trajectory
 
         n_target = min(int(rng.integers(cfg.num_vehicles[0], cfg.num_vehicles[1] + 1)), cfg.max_objects)
-        tracks: list[np.ndarray] = []
+        tracks = np.zeros((0, T, 7))
         moving: list[bool] = []
-        for i in range(n_target):
+        for _ in range(n_target):
             is_moving = bool(rng.random() < cfg.moving_fraction)
             for _ in range(_PLACE_ATTEMPTS):
                 track = _vehicle_track(rng, T, cfg, ground_y, anchor_z, is_moving)
                 if not _overlaps_any(track, tracks, margin=0.5):
-                    tracks.append(track)
+                    tracks = np.concatenate([tracks, track[None]])
                     moving.append(is_moving)
                     break
-        if not tracks:
+        if len(tracks) == 0:
             continue
-        vehicles = torch.from_numpy(np.stack(tracks, axis=1))  # T×n×7
+        vehicles = torch.from_numpy(tracks).transpose(0, 1).contiguous()  # T×n×7
         inside = boxes_inside_grid(vehicles, ref0_T_ref, grid)  # T×n
         if not bool(inside.any(-1).all()):
             continue
@@ -255,21 +253,33 @@ def sample_scene(rng: np.random.Generator, *, T: int, V: int, cfg: WorldConfig, 
         target_ref = torch.tensor(centre, dtype=torch.float64).expand(T, 3).unsqueeze(1)  # T×1×3
         targets = se3.apply(ref0_T_ref, target_ref)[:, 0]  # T×3
         targets = targets.repeat_interleave(V, dim=0)  # T·V×3
+        # Draw a few candidates per wanted structure, reject those in a camera's way at once, then keep
+        # the first non-overlapping ones of each kind.
+        wanted, kinds, cands = [], [], []
+        for kind, count in (("building", cfg.num_buildings), ("wall", cfg.num_walls), ("pole", cfg.num_poles)):
+            n_kind = int(rng.integers(count[0], count[1] + 1))
+            wanted.append(n_kind)
+            for _ in range(n_kind * (_PLACE_ATTEMPTS // 3)):
+                kinds.append(kind)
+                cands.append(_structure_candidate(rng, kind, cfg, ground_y, anchor_z))
         structures: list[np.ndarray] = []
         rows: list[np.ndarray] = []
-        for kind, count in (("building", cfg.num_buildings), ("wall", cfg.num_walls), ("pole", cfg.num_poles)):
-            for _ in range(int(rng.integers(count[0], count[1] + 1))):
-                for _ in range(_PLACE_ATTEMPTS // 3):
-                    cand = _structure_candidate(rng, kind, cfg, ground_y, anchor_z)
-                    if _overlaps_any(cand[None], tracks + [s[None] for s in structures], margin=0.3):
-                        continue
-                    if _blocks_views(cand, cam_centres, targets, cfg.camera_clearance):
-                        continue
-                    structures.append(cand)
-                    palette = _STRUCTURE_COLOURS[kind]
-                    base = np.array(palette[int(rng.integers(len(palette)))]) * rng.uniform(0.85, 1.15)
-                    rows.append(_texture_row(rng, cfg, np.clip(base, 0, 1)))
-                    break
+        if cands:
+            cands_arr = np.stack(cands)
+            blocked = _blocks_views(cands_arr, cam_centres, targets, cfg.camera_clearance)
+            placed = {"building": 0, "wall": 0, "pole": 0}
+            quota = dict(zip(("building", "wall", "pole"), wanted))
+            for kind, cand, bad in zip(kinds, cands_arr, blocked):
+                if bad or placed[kind] >= quota[kind]:
+                    continue
+                if _overlaps_any(cand[None], tracks, margin=0.3) or (
+                        structures and _overlaps_any(cand[None], np.stack(structures)[:, None], margin=0.3)):
+                    continue
+                structures.append(cand)
+                placed[kind] += 1
+                palette = _STRUCTURE_COLOURS[kind]
+                base = np.array(palette[int(rng.integers(len(palette)))]) * rng.uniform(0.85, 1.15)
+                rows.append(_texture_row(rng, cfg, np.clip(base, 0, 1)))
         vehicle_rows = [_texture_row(rng, cfg, _hsv_to_rgb(rng.random(), rng.uniform(0.5, 0.95), rng.uniform(0.45, 0.95)))
                         for _ in tracks]
         return Scene(

@@ -22,7 +22,7 @@ COLOUR_B = slice(7, 10)
 N_TEX = 10
 
 LATTICE = 256        # period of the noise lattice, in lattice cells
-NOISE_CHANNELS = 3   # independent noise fields in one lattice
+NOISE_CHANNELS = 2   # independent noise fields in one lattice
 
 
 def noise_lattice(generator: torch.Generator, device: torch.device | str) -> torch.Tensor:
@@ -34,13 +34,23 @@ def noise_lattice(generator: torch.Generator, device: torch.device | str) -> tor
     return base.unsqueeze(0).to(device)
 
 
-def sample_noise(lattice: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Value noise at lattice coordinates: a, b: R×N (R coordinate sets) -> R×NOISE_CHANNELS×N in [0, 1]."""
-    R, N = a.shape
-    scale = 2.0 / LATTICE  # align_corners=True: -1 is texel 0, +1 is texel L
-    grid = torch.stack([a.remainder(LATTICE) * scale - 1.0, b.remainder(LATTICE) * scale - 1.0], dim=-1)  # R×N×2
+def sample_noise(lattice: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+    """Value noise at lattice coordinates: coords R×N×2 (R sets of (a, b) points; overwritten in place)
+    -> R×NOISE_CHANNELS×N in [0, 1]."""
+    # Periodic wrap, then align_corners=True normalisation: -1 is texel 0, +1 is texel L.
+    grid = coords.remainder_(LATTICE).mul_(2.0 / LATTICE).sub_(1.0)
     out = F.grid_sample(lattice, grid.unsqueeze(0), mode="bilinear", align_corners=True)  # 1×C×R×N
     return out[0].transpose(0, 1)  # R×C×N
+
+
+def _coords(*pairs: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """R pairs of N-vectors (a, b) -> R×N×2 coordinates for `sample_noise`."""
+    a0 = pairs[0][0]
+    out = torch.empty(len(pairs), a0.shape[0], 2, dtype=a0.dtype, device=a0.device)
+    for r, (a, b) in enumerate(pairs):
+        out[r, :, 0] = a
+        out[r, :, 1] = b
+    return out
 
 
 def face_coordinates(p: torch.Tensor, face_axis: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -68,9 +78,8 @@ def object_albedo(p_local: torch.Tensor, face_axis: torch.Tensor, half: torch.Te
     checker = (torch.floor(u) + torch.floor(v)).remainder(2.0)
     along = torch.where(table[:, AXIS] > 0.5, v, u + 0.5 * v)  # horizontal or diagonal stripes
     stripes = torch.floor(along * 2.0).remainder(2.0)
-    ca = torch.stack([u * 1.5 + seed, a * 4.0 + seed])  # 2×N: pattern noise, fine detail
-    cb = torch.stack([v * 1.5 + 0.37 * seed, b * 4.0 + 0.37 * seed])
-    n = sample_noise(lattice, ca, cb)  # 2×C×N
+    n = sample_noise(lattice, _coords((u * 1.5 + seed, v * 1.5 + 0.37 * seed),  # pattern noise
+                                      (a * 4.0 + seed, b * 4.0 + 0.37 * seed)))  # fine detail; 2×C×N
     noise, detail = n[0, 0], n[1, 1] - 0.5
     kind = table[:, KIND]
     mix = torch.where(kind == CHECKER, checker, torch.where(kind == STRIPES, stripes, noise))  # N
@@ -78,29 +87,29 @@ def object_albedo(p_local: torch.Tensor, face_axis: torch.Tensor, half: torch.Te
     return (colour * (1.0 + 0.3 * detail.unsqueeze(-1))).clamp(0.0, 1.0)
 
 
+# Ground albedo per class: road, pavement, earth; and the lane paint.
+_GROUND_PALETTE = ((0.27, 0.27, 0.29), (0.55, 0.53, 0.50), (0.40, 0.45, 0.22))
+_PAINT = (0.9, 0.85, 0.55)
+
+
 def ground_albedo(x: torch.Tensor, z: torch.Tensor, lattice: torch.Tensor, *, road_half_width: float,
                   sidewalk_width: float, noise_scale: float) -> torch.Tensor:
     """Albedo of ground points at (x, z) in `ref0` metres (the road runs along z): N, N -> N×3.
 
-    Asphalt with lane markings on the road, paving slabs on the sidewalks, patchy earth beyond; value
-    noise at two scales on top so every patch of ground is locally distinctive.
+    Asphalt with lane markings on the road, paving slabs on the sidewalks, earth beyond; value noise at
+    two scales modulates everything, so every patch of ground is locally distinctive.
     """
-    n = sample_noise(lattice, torch.stack([x / noise_scale, x / (4 * noise_scale) + 101.0]),
-                     torch.stack([z / noise_scale, z / (4 * noise_scale) + 57.0]))  # 2×C×N
-    n1, n2, n3 = n[0, 0], n[1, 1], n[0, 2]
-    grain = 0.55 * n1 + 0.45 * n2  # N in [0, 1]
+    inv = 1.0 / noise_scale
+    n = sample_noise(lattice, _coords((x * inv, z * inv), (x * (0.25 * inv) + 101.0, z * (0.25 * inv) + 57.0)))  # 2×C×N
+    grain = 0.55 * n[0, 0] + 0.45 * n[1, 1]  # N in [0, 1]
     ax = x.abs()
-    asphalt = 0.16 + 0.24 * grain
-    road = torch.stack([asphalt, asphalt, asphalt * 1.06], -1)  # N×3
-    paint = (((ax < 0.12) & (z.remainder(6.0) < 3.0))
-             | ((ax > road_half_width - 0.35) & (ax < road_half_width - 0.2))).unsqueeze(-1)
-    road = torch.where(paint, torch.tensor([0.9, 0.85, 0.55], device=x.device, dtype=x.dtype), road)
-    slab = (torch.floor(x * 1.25) + torch.floor(z * 1.25)).remainder(2.0)  # 0.8 m paving slabs
-    pave = 0.5 + 0.12 * slab + 0.2 * (grain - 0.5)
-    pavement = torch.stack([pave, pave * 0.97, pave * 0.92], -1)
-    earth = torch.stack([0.22 + 0.25 * n2 + 0.1 * n3, 0.3 + 0.3 * n1, 0.12 + 0.12 * grain], -1)
-    return torch.where((ax < road_half_width).unsqueeze(-1), road,
-                       torch.where((ax < road_half_width + sidewalk_width).unsqueeze(-1), pavement, earth)).clamp(0, 1)
+    cls = (ax >= road_half_width).long() + (ax >= road_half_width + sidewalk_width).long()  # N: 0 road, 1 walk, 2 earth
+    palette = torch.tensor(_GROUND_PALETTE, dtype=x.dtype, device=x.device)
+    slab = (torch.floor(x * 1.25) + torch.floor(z * 1.25)).remainder(2.0) * (cls == 1)  # 0.8 m paving slabs
+    albedo = palette[cls] * (0.55 + 0.9 * grain + 0.2 * slab).unsqueeze(-1)  # N×3
+    paint = (cls == 0) & (((ax < 0.12) & (z.remainder(6.0) < 3.0))
+                          | ((ax > road_half_width - 0.35) & (ax < road_half_width - 0.2)))
+    return torch.where(paint.unsqueeze(-1), torch.tensor(_PAINT, dtype=x.dtype, device=x.device), albedo).clamp(0, 1)
 
 
 def sky_colour(up: torch.Tensor) -> torch.Tensor:
