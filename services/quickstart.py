@@ -1,0 +1,175 @@
+"""The main job, end to end on the embedded defaults (scripts/quickstart.sh runs this).
+
+It runs the real `n3dmap` commands as subprocesses and prints each one, so every step can be
+rerun by hand. Steps whose output already exists are skipped (training reruns resume instead), so
+an interrupted quick start continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+CLI = [sys.executable, "-m", "services.cli.main"]
+
+
+def run(args: list[str], *, title: str) -> None:
+    print(f"\n== {title}\n$ n3dmap {shlex.join(args)}", flush=True)
+    started = time.monotonic()
+    code = subprocess.call(CLI + args)
+    if code != 0:
+        raise SystemExit(f"quickstart: `n3dmap {shlex.join(args)}` failed with exit status {code}")
+    print(f"   ({time.monotonic() - started:.0f} s)", flush=True)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m services.quickstart", description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="quickstart", help="where everything lands (default ./quickstart)")
+    parser.add_argument("--preset", default="tiny")
+    parser.add_argument("--episodes", type=int, default=16, help="training records to generate")
+    parser.add_argument("--steps", type=int, default=40, help="steps of each training job")
+    parser.add_argument("--workers", type=int, default=2, help="Ray Train workers for pretraining (0 = in-process)")
+    parser.add_argument("--skip-serve", action="store_true")
+    parser.add_argument("--skip-stream", action="store_true")
+    args = parser.parse_args(argv)
+
+    out = Path(args.out)
+    data, val, runs, reports = out / "data" / "train", out / "data" / "val", out / "runs", out / "reports"
+    started = time.monotonic()
+
+    if not (data / "manifest.json").exists():
+        run(["data", "generate", "--out", str(data), "--preset", args.preset, "--episodes", str(args.episodes),
+             "--seed", "0", "--moving-ego", "mixed", "--overwrite"], title="1. generate a synthetic training set")
+    if not (val / "manifest.json").exists():
+        run(["data", "generate", "--out", str(val), "--preset", args.preset, "--episodes", "4", "--seed", "1",
+             "--split", "val", "--moving-ego", "mixed", "--overwrite"], title="   and a validation set")
+    run(["data", "info", str(data), "--verify"], title="   verify it")
+    run(["data", "preview", str(data), "--out", str(out / "preview.png")], title="   preview one record")
+
+    steps = str(args.steps)
+    run(["train", "pretrain", "--data", str(data), "--run-dir", str(runs / "pretrain"), "--objective", "contrastive",
+         "--workers", str(args.workers), "--steps", steps],
+        title=f"2. view-contrastive pretraining on a {args.workers}-worker local Ray")
+    previous = runs / "pretrain" / "bundle"
+    for task in ("egomotion", "occupancy", "flow"):
+        run(["train", task, "--data", str(data), "--run-dir", str(runs / task), "--init", str(previous),
+             "--workers", "0", "--steps", steps], title=f"3. train {task} (warm start from {previous.parent.name})")
+        previous = runs / task / "bundle"
+    run(["train", "detector", "--data", str(data), "--run-dir", str(runs / "detector"), "--init", str(previous),
+         "--labels", str(args.episodes), "--workers", "0", "--steps", steps], title="   train the 3D detector")
+    bundle = runs / "detector" / "bundle"
+    run(["bundle", "info", str(bundle)], title="   the final bundle")
+
+    run(["eval", "all", "--data", str(val), "--bundle", str(bundle), "--out", str(reports / "all")],
+        title="4. evaluate every module on the validation set")
+
+    if not args.skip_serve:
+        serve_and_call(bundle, data)
+    if not args.skip_stream:
+        stream(bundle)
+
+    print(f"\nquickstart finished in {time.monotonic() - started:.0f} s; everything is under {out}/:"
+          f"\n  {out}/preview.png, {runs}/*/metrics.jsonl, {bundle}, {reports}/all/report.md", flush=True)
+    return 0
+
+
+def serve_and_call(bundle: Path, data: Path) -> None:
+    """5. Start `n3dmap serve`, call every route over REST and gRPC with the Python client, stop it."""
+    from core.data.shards import ShardDataset
+    from services.inference.client import GrpcClient, RestClient
+
+    http_port, grpc_port = free_port(), free_port()
+    cmd = ["serve", "--bundle", str(bundle), "--http-port", str(http_port), "--grpc-port", str(grpc_port)]
+    print(f"\n== 5. serve the bundle over REST + gRPC\n$ n3dmap {shlex.join(cmd)} &", flush=True)
+    server = subprocess.Popen(CLI + cmd)
+    try:
+        rest = RestClient(f"http://127.0.0.1:{http_port}")
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                if rest.ready():
+                    break
+            except Exception:  # not listening yet
+                pass
+            if server.poll() is not None or time.monotonic() > deadline:
+                raise SystemExit("quickstart: the inference server did not become ready")
+            time.sleep(0.5)
+        record = ShardDataset(str(data))[0]
+        views0 = {k: record[k][0] if k != "pix_T_cam" else record[k] for k in ("rgb", "depth", "pix_T_cam")}
+        views0["world_T_cam"] = record["world_T_cam"][0]
+        views1 = {**views0, "rgb": record["rgb"][1], "depth": record["depth"][1], "world_T_cam": record["world_T_cam"][1]}
+        grpc_client = GrpcClient(f"127.0.0.1:{grpc_port}")
+        for name, client in (("REST", rest), ("gRPC", grpc_client)):
+            models = client.models()
+            print(f"   {name}: bundle {models['bundle_version']}, routes {', '.join(models['routes'])}")
+            m = client.map(**views0)
+            print(f"   {name} map: occupancy {list(m['occupancy'].shape)}, "
+                  f"{int((m['occupancy'] > 0.5).sum())} voxels occupied")
+            e = client.egomotion(views0, views1)
+            print(f"   {name} egomotion: cam0_T_cam1 translation {e['cam0_T_cam1'][:3, 3].round(3).tolist()} m")
+            f = client.flow(views0, views1)
+            print(f"   {name} flow: {list(f['flow'].shape)}")
+            d = client.detect(**views0)
+            print(f"   {name} detect: {len(d['boxes'])} boxes in {d['frame']}")
+            mo = client.moving_objects(views0, views1)
+            print(f"   {name} moving-objects: {len(mo['boxes'])} boxes in {mo['frame']}")
+        grpc_client.close()
+    finally:
+        server.send_signal(signal.SIGTERM)
+        try:
+            server.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.wait()
+
+
+def stream(bundle: Path) -> None:
+    """6. Bridge + simulated camera + listener over zenoh on loopback (peer mode)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    bridge_cmd = ["stream", "bridge", "--bundle", str(bundle), "--listen", endpoint, "--duration", "120",
+                  "--bridge-id", "quickstart", "--status-every", "0"]
+    listen_cmd = ["stream", "listen", "--camera-id", "cam0", "--connect", endpoint, "--count", "12", "--timeout", "60"]
+    camera_cmd = ["stream", "camera", "--camera-id", "cam0", "--synthetic", "--rate", "5", "--frames", "16",
+                  "--connect", endpoint]
+    print("\n== 6. stream a simulated camera through the zenoh bridge", flush=True)
+    for cmd in (bridge_cmd, listen_cmd, camera_cmd):
+        print(f"$ n3dmap {shlex.join(cmd)} &", flush=True)
+    bridge = subprocess.Popen(CLI + bridge_cmd, stdout=subprocess.PIPE, text=True)
+    listener = subprocess.Popen(CLI + listen_cmd)
+    try:
+        time.sleep(2.0)
+        code = subprocess.call(CLI + camera_cmd)
+        if code != 0:
+            raise SystemExit(f"quickstart: the simulated camera failed with exit status {code}")
+        listener.wait(timeout=120)
+    finally:
+        for proc in (listener, bridge):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        out, _ = bridge.communicate(timeout=60)
+        listener.wait(timeout=30)
+    for line in out.splitlines():
+        if line.startswith('{"final_status"'):
+            status = json.loads(line)["final_status"]["cameras"].get("cam0", {})
+            print(f"   bridge accounting for cam0: received {status.get('received')}, processed "
+                  f"{status.get('processed')}, dropped {status.get('dropped')}, malformed {status.get('malformed')}; "
+                  f"latency p50 {status.get('latency_ms', {}).get('p50')} ms", flush=True)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    sys.exit(main())
