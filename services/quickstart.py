@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
 def serve_and_call(bundle: Path, data: Path) -> None:
     """5. Start `n3dmap serve`, call every route over REST and gRPC with the Python client, stop it."""
     from core.data.shards import ShardDataset
-    from services.inference.client import GrpcClient, RestClient
+    from services.inference.client import Frames, GrpcClient, RestClient
 
     http_port, grpc_port = free_port(), free_port()
     cmd = ["serve", "--bundle", str(bundle), "--http-port", str(http_port), "--grpc-port", str(grpc_port)]
@@ -98,10 +98,10 @@ def serve_and_call(bundle: Path, data: Path) -> None:
     server = subprocess.Popen(CLI + cmd)
     try:
         rest = RestClient(f"http://127.0.0.1:{http_port}")
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + 180
         while True:
             try:
-                if rest.ready():
+                if rest.health()["ready"]:
                     break
             except Exception:  # not listening yet
                 pass
@@ -109,21 +109,21 @@ def serve_and_call(bundle: Path, data: Path) -> None:
                 raise SystemExit("quickstart: the inference server did not become ready")
             time.sleep(0.5)
         record = ShardDataset(str(data))[0]
-        views0 = {k: record[k][0] if k != "pix_T_cam" else record[k] for k in ("rgb", "depth", "pix_T_cam")}
-        views0["world_T_cam"] = record["world_T_cam"][0]
-        views1 = {**views0, "rgb": record["rgb"][1], "depth": record["depth"][1], "world_T_cam": record["world_T_cam"][1]}
+        # All views of the record at t=0 and t=1: rgb V×H×W×3, depth V×H×W, poses V×4×4.
+        views0 = Frames(record["rgb"][0], record["depth"][0], record["pix_T_cam"], record["world_T_cam"][0])
+        views1 = Frames(record["rgb"][1], record["depth"][1], record["pix_T_cam"], record["world_T_cam"][1])
         grpc_client = GrpcClient(f"127.0.0.1:{grpc_port}")
         for name, client in (("REST", rest), ("gRPC", grpc_client)):
             models = client.models()
             print(f"   {name}: bundle {models['bundle_version']}, routes {', '.join(models['routes'])}")
-            m = client.map(**views0)
+            m = client.map(views0)
             print(f"   {name} map: occupancy {list(m['occupancy'].shape)}, "
                   f"{int((m['occupancy'] > 0.5).sum())} voxels occupied")
             e = client.egomotion(views0, views1)
             print(f"   {name} egomotion: cam0_T_cam1 translation {e['cam0_T_cam1'][:3, 3].round(3).tolist()} m")
             f = client.flow(views0, views1)
             print(f"   {name} flow: {list(f['flow'].shape)}")
-            d = client.detect(**views0)
+            d = client.detect(views0)
             print(f"   {name} detect: {len(d['boxes'])} boxes in {d['frame']}")
             mo = client.moving_objects(views0, views1)
             print(f"   {name} moving-objects: {len(mo['boxes'])} boxes in {mo['frame']}")
