@@ -28,6 +28,7 @@ class Metrics:
         self.model_time = Histogram("n3dmap_model_seconds", "Duration of one batched model call",
                                     ["route"], buckets=LATENCY_BUCKETS, registry=r)
         self.queue_depth = Gauge("n3dmap_queue_depth", "Requests waiting for a batch", registry=r)
+        self.in_flight = Gauge("n3dmap_in_flight", "Requests waiting for or inside a model call", registry=r)
         self.reloads = Counter("n3dmap_reloads", "Bundle reloads by result", ["result"], registry=r)
 
     def observe_batch(self, route: str, batch_size: int, waits_s: list[float], model_s: float) -> None:

@@ -257,6 +257,7 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
     @app.get("/metrics", tags=["probes"], summary="Prometheus metrics", response_class=Response)
     async def metrics():
         runtime.metrics.queue_depth.set(runtime.queued)
+        runtime.metrics.in_flight.set(runtime.in_flight)
         return Response(runtime.metrics.render(), media_type=runtime.metrics.content_type)
 
     _add_component_schemas(app, extra_models)

@@ -154,6 +154,10 @@ class Runtime:
     def queued(self) -> int:
         return self._batcher.queued
 
+    @property
+    def in_flight(self) -> int:
+        return self._batcher.in_flight
+
     def describe(self) -> dict:
         """What /v1/models and the Models RPC report."""
         bundle = self._loaded.bundle

@@ -9,6 +9,7 @@ queue); SIGHUP reloads the bundle from its directory (the old bundle keeps servi
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import signal
 import sys
@@ -82,6 +83,22 @@ def build_app(settings: ServeSettings, runtime: Runtime):
     return create_app(runtime, token=settings.token, max_body_bytes=settings.max_body_bytes, lifespan=lifespan)
 
 
+def _server_class():
+    import uvicorn
+
+    class Server(uvicorn.Server):
+        """uvicorn re-raises a captured SIGTERM after its graceful shutdown, so the process would end
+        "killed by SIGTERM"; a completed graceful shutdown exits 0 instead (SIGINT still interrupts)."""
+
+        @contextlib.contextmanager
+        def capture_signals(self):
+            with super().capture_signals():
+                yield
+                self._captured_signals = [s for s in self._captured_signals if s != signal.SIGTERM]
+
+    return Server
+
+
 def run(settings: ServeSettings) -> int:
     """Serve until SIGTERM/SIGINT. Errors in the bundle or ports end the process with a message."""
     import uvicorn
@@ -94,7 +111,7 @@ def run(settings: ServeSettings) -> int:
     config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level=settings.log_level,
                             ssl_certfile=settings.tls_cert, ssl_keyfile=settings.tls_key,
                             timeout_graceful_shutdown=int(settings.drain_s) or None, lifespan="on")
-    server = uvicorn.Server(config)
+    server = _server_class()(config)
     server.run()
     # uvicorn returns normally when startup fails (port taken, gRPC bind error): say so by status.
     return 0 if server.started else 1

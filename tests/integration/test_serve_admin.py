@@ -145,18 +145,24 @@ def test_sigterm_drains_in_flight_requests_then_exits(server):
     """Runs last in this module: it stops the shared server."""
     from services.inference.client import RestClient
 
-    f = sample_frames(views=2)
+    f = sample_frames(views=12)  # a slow request, so that it is surely in flight at SIGTERM
 
     def one(_):
         with RestClient(server.url, token=TOKEN) as c:
             return c.map(f)["observed"].shape
 
-    with ThreadPoolExecutor(2) as pool:
-        futures = [pool.submit(one, i) for i in range(2)]
-        time.sleep(0.3)  # both requests are in the server now
+    def in_flight() -> float:
+        text = httpx.get(server.url + "/metrics").text
+        return float(next(line.split()[1] for line in text.splitlines() if line.startswith("n3dmap_in_flight ")))
+
+    with ThreadPoolExecutor(1) as pool:
+        future = pool.submit(one, 0)
+        deadline = time.monotonic() + 60
+        while in_flight() < 1 and time.monotonic() < deadline:
+            time.sleep(0.01)
         server.signal(signal.SIGTERM)
-        shapes = [fut.result(timeout=60) for fut in futures]
-    assert all(len(s) == 3 for s in shapes)
+        shape = future.result(timeout=60)
+    assert len(shape) == 3
     assert server.proc.wait(60) == 0
     with pytest.raises(httpx.HTTPError):
         httpx.get(server.url + "/healthz", timeout=2)
