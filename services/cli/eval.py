@@ -19,6 +19,10 @@ EVAL_KINDS: dict[str, str] = {
     "egomotion": "services.cli.eval_tasks.egomotion",
     "flow": "services.cli.eval_tasks.flow",
     "occupancy": "services.cli.eval_tasks.occupancy",
+    "detection": "services.cli.eval_tasks.detection",
+    "moving": "services.cli.eval_tasks.moving",
+    "retrieval": "services.cli.eval_tasks.retrieval",
+    "all": "services.cli.eval_tasks.all",
 }
 
 
