@@ -3,7 +3,8 @@
 Each function takes batched tensors on the bundle's device and returns a dict of tensors.
 """
 
+from core.pipeline.detect import detect
 from core.pipeline.map import map_frames
 from core.pipeline.moving import moving_objects
 
-__all__ = ["map_frames", "moving_objects"]
+__all__ = ["detect", "map_frames", "moving_objects"]
