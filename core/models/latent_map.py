@@ -26,8 +26,8 @@ def masked_average(features: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
 
     Voxels with zero total mask fall back to the unweighted mean over V.
     """
-    total = masks.sum(dim=1)                                     # B×1×Z×Y×X
-    weights = torch.where(total > 0, masks, torch.ones_like(masks))  # B×V×1×Z×Y×X (broadcast by where)
+    total = masks.sum(dim=1, keepdim=True)                       # B×1×1×Z×Y×X
+    weights = torch.where(total > 0, masks, torch.ones_like(masks))  # B×V×1×Z×Y×X
     mean = (features * weights).sum(dim=1) / weights.sum(dim=1)  # B×F×Z×Y×X
     return F.normalize(mean, dim=1)
 
