@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from core.errors import ShapeError
@@ -51,7 +52,8 @@ def from_rt(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """(R: ...×3×3, t: ...×3) -> ...×4×4 with bottom row (0, 0, 0, 1)."""
     _check_last("R", R, (3, 3))
     _check_last("t", t, (3,))
-    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    # numpy's broadcast_shapes: torch.broadcast_shapes imports torch's meta registrations (~3 s, once).
+    batch = np.broadcast_shapes(tuple(R.shape[:-2]), tuple(t.shape[:-1]))
     R, t = R.expand(*batch, 3, 3), t.expand(*batch, 3)
     top = torch.cat([R, t.unsqueeze(-1)], dim=-1)  # ...×3×4
     bottom = torch.zeros(*top.shape[:-2], 1, 4, dtype=top.dtype, device=top.device)
