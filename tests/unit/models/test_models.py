@@ -54,23 +54,9 @@ def test_occupancy_head_shapes_and_range():
     assert p.shape == (2, 1, 7, 5, 9) and p.min() >= 0 and p.max() <= 1
 
 
-def _views(B, V, H, W, grid):
-    """Cameras at the ref origin turned by yaw, looking at a ground plane 2 m below (Y down)."""
-    K = intrinsics_from_fov(H, W, 90.0)[0]
-    v = torch.arange(H, dtype=torch.float32)[:, None].expand(H, W)
-    yn = (v - K[1, 2]) / K[1, 1]
-    depth = torch.where(yn > 0.05, 2.0 / yn.clamp(min=1e-3), torch.full_like(yn, 6.0)).clamp(max=6.0)
-    ref_T_cam = torch.zeros(B, V, 4, 4)
-    ref_T_cam[..., :, :] = torch.eye(4)
-    yaw = torch.linspace(0, 3.0, V)
-    ref_T_cam[..., :3, :3] = se3.yaw_to_matrix(yaw)
-    return (torch.rand(B, V, 3, H, W), depth.expand(B, V, H, W).clone(), K.expand(B, V, 4, 4).clone(),
-            se3.invert(ref_T_cam))
-
-
-def test_input_volume_channels():
+def test_input_volume_channels(make_views):
     grid = TINY.grid
-    rgb, depth, K, cam_T_ref = _views(1, 1, 16, 48, grid)
+    rgb, depth, K, cam_T_ref = make_views(1, 1, 16, 48, grid)
     vol, in_view = input_volume(rgb[:, 0], depth[:, 0], K[:, 0], cam_T_ref[:, 0], grid)
     assert vol.shape == (1, 4, *grid.shape_zyx) and in_view.shape == (1, 1, *grid.shape_zyx)
     from core.geometry.camera import depth_to_points
@@ -99,9 +85,9 @@ def test_masked_average_matches_loop_and_running_map():
     assert torch.allclose(state.features().permute(0, 2, 3, 4, 1)[seen], fused.permute(0, 2, 3, 4, 1)[seen], atol=1e-5)
 
 
-def test_mapper_shapes():
+def test_mapper_shapes(make_views):
     mapper = Mapper(grid=TINY.grid, width=4, feature_dim=6)
-    rgb, depth, K, cam_T_ref = _views(2, 3, 16, 48, TINY.grid)
+    rgb, depth, K, cam_T_ref = make_views(2, 3, 16, 48, TINY.grid)
     feats, in_view, occ = mapper.encode_views(rgb, depth, K, cam_T_ref)
     assert feats.shape == (2, 3, 6, *TINY.grid.shape_zyx)
     assert in_view.shape == occ.shape == (2, 3, 1, *TINY.grid.shape_zyx)
