@@ -1,0 +1,95 @@
+"""Mean ± std over seeds, and the tables of the paper rebuilt from per-seed results.
+
+`per_seed` is `{seed: result}` as `services.bench.paper` collects it; every function here returns
+plain dicts of `Spread` values (`{"mean", "std", "n", "values"}`), NaN-free (missing values are left
+out; a quantity no seed produced has mean None).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Iterable
+
+
+def spread(values: Iterable) -> dict:
+    """{"mean", "std" (population, 0 for one seed), "n", "values"} of the finite values."""
+    vals = [float(v) for v in values if v is not None and isinstance(v, (int, float)) and math.isfinite(v)]
+    if not vals:
+        return {"mean": None, "std": None, "n": 0, "values": []}
+    mean = sum(vals) / len(vals)
+    std = math.sqrt(sum((v - mean) ** 2 for v in vals) / len(vals))
+    return {"mean": mean, "std": std, "n": len(vals), "values": vals}
+
+
+def fmt(s: dict | None, digits: int = 3) -> str:
+    """'0.512 ± 0.031' (± only with several seeds); '–' when missing."""
+    if not s or s.get("mean") is None:
+        return "–"
+    text = f"{s['mean']:.{digits}f}"
+    if s["n"] > 1:
+        text += f" ± {s['std']:.{digits}f}"
+    return text
+
+
+def _get(d: dict, *path):
+    for key in path:
+        if not isinstance(d, dict) or key not in d:
+            return None
+        d = d[key]
+    return d
+
+
+def over_seeds(per_seed: dict, *path) -> dict:
+    return spread(_get(r, *path) for r in per_seed.values())
+
+
+def detection_table(per_seed: dict, variants, budgets: list[str], ious=("0.33", "0.5", "0.75")) -> dict:
+    """{"arm/mode": {budget: {iou: Spread}}}."""
+    return {f"{a}/{m}": {b: {i: over_seeds(per_seed, "detection", f"{a}/{m}/{b}", "map", i) for i in ious}
+                         for b in budgets} for a, m in variants}
+
+
+def retrieval_table(per_seed: dict, arms) -> dict:
+    return {arm: {dim: {k: over_seeds(per_seed, "retrieval", arm, dim, k) for k in ("p@1", "p@5", "p@10")}
+                  for dim in ("2d", "3d")} for arm in arms}
+
+
+def flow_table(per_seed: dict, arms) -> dict:
+    """Rows "zero-motion" and one per arm (the model with free voxels zeroed): full/static/moving L1 EPE."""
+    cols = {"full": "epe_l1_full", "static": "epe_l1_static", "moving": "epe_l1_moving", "epe3d": "epe3d"}
+    rows = {"zero-motion": {c: over_seeds(per_seed, "flow", arms[-1], "zero_motion", k) for c, k in cols.items()}}
+    for arm in arms:
+        rows[arm] = {c: over_seeds(per_seed, "flow", arm, "model", k) for c, k in cols.items()}
+    return rows
+
+
+def occupancy_table(per_seed: dict, arms) -> dict:
+    keys = ("acc_occupied", "acc_free", "acc_all", "iou_occupied")
+    return {arm: {k: over_seeds(per_seed, "occupancy", arm, k) for k in keys} for arm in arms}
+
+
+def egomotion_table(per_seed: dict) -> dict:
+    methods = set()
+    for r in per_seed.values():
+        methods |= set(_get(r, "egomotion", "methods") or {})
+    order = [m for m in ("model", "icp", "identity") if m in methods] + sorted(methods - {"model", "icp", "identity"})
+    return {m: {"rot_rad": over_seeds(per_seed, "egomotion", "methods", m, "rot_err_rad_mean"),
+                "trans_m": over_seeds(per_seed, "egomotion", "methods", m, "trans_err_m_mean"),
+                "pairs": over_seeds(per_seed, "egomotion", "methods", m, "pairs")} for m in order}
+
+
+def moving_table(per_seed: dict) -> dict:
+    """{setting: {method: {"ap": Spread, "gt_boxes": Spread, "curve": first seed's PR curve}}}."""
+    out: dict = {}
+    for setting in ("static", "moving"):
+        methods: list[str] = []
+        for r in per_seed.values():
+            for m in _get(r, "moving", setting) or {}:
+                if m not in methods:
+                    methods.append(m)
+        first = next(iter(per_seed.values()), {})
+        out[setting] = {m: {"ap": over_seeds(per_seed, "moving", setting, m, "ap"),
+                            "gt_boxes": over_seeds(per_seed, "moving", setting, m, "gt_boxes"),
+                            "curve": _get(first, "moving", setting, m, "curve")} for m in methods}
+        out[f"pairs_{setting}"] = over_seeds(per_seed, "moving", "pairs", setting)
+    return out

@@ -1,0 +1,199 @@
+"""The benchmark report: OUT/report.md, OUT/metrics.json and PNG plots, through services.reports.Report.
+
+Sections, in the paper's order: semi-supervised detection (mAP vs number of labels per pretraining,
+frozen and fine-tuned; the mAP@{0.33,0.5,0.75} table), retrieval P@1/5/10 (2D and 3D), flow EPE
+(full/static/moving with the zero-motion row), moving-object PR curves (static camera, moving camera,
+2.5D baselines), occupancy accuracy, egomotion vs ICP, then the claims, then the stages' wall times.
+Every number is the mean over seeds, with ± the standard deviation when there are several.
+metrics.json's "metrics" holds the same tables (mean/std/n/values per cell), the claims, the config,
+the seeds, the wall times and the raw per-seed results.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from services.bench import aggregate as agg
+from services.bench.claims import check_claims
+from services.bench.plan import PRETRAINED_ARMS, BenchConfig
+from services.reports import Report
+
+METRIC_KEYS = ("config", "seeds", "wall_time_s", "stage_seconds", "total_stage_seconds", "detection",
+               "retrieval", "flow", "moving", "occupancy", "egomotion", "claims", "per_seed")
+
+
+def _budget_names(config: BenchConfig) -> list[str]:
+    return ["all" if b is None else str(b) for b in config.budgets_sorted]
+
+
+def build_tables(config: BenchConfig, per_seed: dict) -> dict:
+    return {
+        "detection": agg.detection_table(per_seed, config.detector_variants, _budget_names(config)),
+        "retrieval": agg.retrieval_table(per_seed, ("random", *PRETRAINED_ARMS)),
+        "flow": agg.flow_table(per_seed, PRETRAINED_ARMS),
+        "moving": agg.moving_table(per_seed),
+        "occupancy": agg.occupancy_table(per_seed, PRETRAINED_ARMS),
+        "egomotion": agg.egomotion_table(per_seed),
+    }
+
+
+def write_bench_report(out: Path, *, config: BenchConfig, results: dict, stage_seconds: dict,
+                       wall_time_s: float, ran: list[str]) -> dict:
+    """Write the report into `out`; returns the metrics dict written under "metrics"."""
+    per_seed = results["seeds"]
+    tables = build_tables(config, per_seed)
+    budgets = _budget_names(config)
+    claims = check_claims(tables, budgets=budgets)
+    total_stages = sum(v for v in stage_seconds.values() if isinstance(v, float) and math.isfinite(v))
+
+    report = Report(kind="bench_paper", title=f"Paper benchmark on the synthetic world ({config.preset} preset)",
+                    data=str(out / "work" / "data"),
+                    settings={"preset": config.preset, "seeds": list(config.seeds), "profile": "quick" if config.quick else "full",
+                              "train_records": config.train_episodes, "test_records": config.test_episodes,
+                              "label_budgets": budgets, "steps": vars(config.steps),
+                              "wall_time_this_run_s": round(wall_time_s, 1), "wall_time_all_stages_s": round(total_stages, 1)})
+    report.text(f"Every number is the mean over {len(config.seeds)} seed(s) {list(config.seeds)}"
+                + (" ± the standard deviation over seeds" if len(config.seeds) > 1 else " (one seed: no spread)")
+                + ". Seeds change the weights' initialisation and the data order; the synthetic train/test data "
+                f"are shared (data seed {config.data_seed}, test seed {config.data_seed + 1}). Training steps per stage: "
+                f"pretrain {config.steps.pretrain}, detector {config.steps.detector}, flow {config.steps.flow}, "
+                f"egomotion {config.steps.egomotion}." + (" **Quick profile: the numbers only show the pipeline "
+                                                        "runs; they say nothing about the paper.**" if config.quick else ""))
+
+    _detection_section(report, tables["detection"], config, budgets)
+    _retrieval_section(report, tables["retrieval"])
+    _flow_section(report, tables["flow"])
+    _moving_section(report, tables["moving"], config)
+    _occupancy_section(report, tables["occupancy"])
+    _egomotion_section(report, tables["egomotion"])
+    _claims_section(report, claims)
+    _stages_section(report, stage_seconds, ran, wall_time_s, total_stages)
+
+    report.metrics = {
+        "config": config.to_dict(), "seeds": list(config.seeds), "wall_time_s": wall_time_s,
+        "stage_seconds": stage_seconds, "total_stage_seconds": total_stages, **tables, "claims": claims,
+        "per_seed": per_seed,
+    }
+    report.write(out)
+    return report.metrics
+
+
+# ----------------------------------------------------------------------------- sections
+
+def _detection_section(report: Report, det: dict, config: BenchConfig, budgets: list[str]) -> None:
+    report.heading("Semi-supervised 3D object detection: mAP vs number of labels")
+    report.text("A Faster-RCNN-style 3D detector trained on the latent map with box labels from N training records "
+                "(`all` = every one), on features from random init, view-regression or view-contrastive "
+                "pretraining, frozen or fine-tuned. mAP over the test set at 3D IoU 0.5 (axis-aligned boxes, "
+                "all-point AP).")
+    report.table(["pretraining / features", *[f"N={b}" for b in budgets]],
+                 [[v, *[agg.fmt(det[v][b]["0.5"]) for b in budgets]] for v in det])
+    for b in (budgets[0], budgets[-1]):
+        report.text(f"mAP at IoU 0.33 / 0.5 / 0.75 with N={b} labelled records (the paper's transfer table layout):")
+        report.table(["method", "mAP@0.33", "mAP@0.5", "mAP@0.75"],
+                     [[v, *[agg.fmt(det[v][b][i]) for i in ("0.33", "0.5", "0.75")]] for v in det])
+    x = [config.budget_records(b) for b in config.budgets_sorted]
+    fig = Figure(figsize=(13, 3.6))
+    axes = fig.subplots(1, 3)
+    for ax, iou in zip(axes, ("0.33", "0.5", "0.75")):
+        for v in det:
+            mean = [det[v][b][iou]["mean"] for b in budgets]
+            std = [det[v][b][iou]["std"] or 0.0 for b in budgets]
+            mean = [np.nan if m is None else m for m in mean]
+            ax.errorbar(x, mean, yerr=std, marker="o", capsize=3, label=v,
+                        linestyle="--" if v.endswith("frozen") else "-")
+        ax.set_xscale("log", base=2)
+        ax.set_xlabel("labelled training records")
+        ax.set_ylabel(f"mAP@{iou}")
+        ax.set_title(f"3D IoU {iou}")
+        ax.set_ylim(bottom=0)
+    axes[0].legend(fontsize=7)
+    report.figure("detection_map_vs_labels", fig,
+                  "Detection mAP vs number of labelled records per pretraining (dashed: frozen features)")
+
+
+def _retrieval_section(report: Report, ret: dict) -> None:
+    report.heading("2D and 3D patch retrieval")
+    report.text("Precision at rank K: each query patch (2D: projector render of the target view; 3D: feature cube "
+                "of the map from the other views) ranks every candidate of the pool (2D: bottom-up features of the "
+                "target image, or the image itself for the regression model; 3D: the target view's own map) by "
+                "L2 distance; one candidate is its true correspondence.")
+    report.table(["pretraining", "2D P@1", "2D P@5", "2D P@10", "3D P@1", "3D P@5", "3D P@10"],
+                 [[arm, *[agg.fmt(ret[arm][d][k]) for d in ("2d", "3d") for k in ("p@1", "p@5", "p@10")]]
+                  for arm in ret])
+
+
+def _flow_section(report: Report, flow: dict) -> None:
+    report.heading("3D flow: mean endpoint error in egomotion-stabilised scenes")
+    report.text("L1 endpoint error in voxels (test pairs, stabilised with the true poses), over all voxels, "
+                "static voxels and moving voxels; flow trained over the frozen features of each pretraining, "
+                "free voxels zeroed by the occupancy head; the zero-motion row predicts no motion anywhere.")
+    report.table(["method", "full", "static", "moving", "EPE3D (occupied)"],
+                 [[row, *[agg.fmt(flow[row][c]) for c in ("full", "static", "moving", "epe3d")]] for row in flow])
+
+
+def _moving_section(report: Report, mov: dict, config: BenchConfig) -> None:
+    report.heading("Unsupervised 3D moving-object detection")
+    report.text(f"AP at 3D IoU {config.moving_iou} (oriented boxes) of the moving objects of each test pair, "
+                f"split by camera: static-camera pairs {agg.fmt(mov['pairs_static'], 0)}, moving-camera pairs "
+                f"{agg.fmt(mov['pairs_moving'], 0)}. Ours: 3D flow on the map (flow bundle of each pretraining), "
+                "stabilised with the true poses or with the egomotion module; 2.5D: 2D optical flow (Farneback; "
+                "or the true 2D flow for the oracle), thresholded, clustered, lifted with depth, per view.")
+    for setting in ("static", "moving"):
+        rows = [[m, agg.fmt(v["ap"]), agg.fmt(v["gt_boxes"], 0)] for m, v in mov[setting].items()]
+        report.text(f"{setting.capitalize()} camera:")
+        report.table(["method", f"AP@{config.moving_iou}", "moving objects"], rows)
+        fig = Figure(figsize=(5, 4))
+        ax = fig.subplots()
+        for m, v in mov[setting].items():
+            curve = v.get("curve") or {}
+            if curve.get("recall"):
+                ax.plot(curve["recall"], curve["precision"], marker=".", label=f"{m} (AP {agg.fmt(v['ap'], 2)})")
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1.02)
+        ax.set_xlabel("recall")
+        ax.set_ylabel("precision")
+        ax.set_title(f"Moving objects, {setting} camera (first seed)")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+        report.figure(f"moving_pr_{setting}_camera", fig, f"Moving-object PR curves, {setting} camera")
+
+
+def _occupancy_section(report: Report, occ: dict) -> None:
+    report.heading("Occupancy accuracy")
+    report.text("Map from one view; labels from that view and the next (occupied: points; free: ray traversal); "
+                "unlabelled voxels ignored. The occupancy head is trained during pretraining.")
+    names = {"acc_occupied": "Occupied space", "acc_free": "Free space", "acc_all": "All space",
+             "iou_occupied": "Occupied IoU"}
+    report.table(["3D area type", *occ], [[label, *[agg.fmt(occ[a][k]) for a in occ]] for k, label in names.items()])
+
+
+def _egomotion_section(report: Report, ego: dict) -> None:
+    report.heading("Egomotion error")
+    report.text("Relative pose error of ref0_T_ref1 on the moving-camera test pairs: the trained egomotion module, "
+                "point-to-plane ICP on the two depth clouds, and the identity (no motion).")
+    report.table(["method", "R (rad)", "t (m)", "pairs"],
+                 [[m, agg.fmt(v["rot_rad"], 4), agg.fmt(v["trans_m"], 4), agg.fmt(v["pairs"], 0)] for m, v in ego.items()])
+
+
+def _claims_section(report: Report, claims: list[dict]) -> None:
+    report.heading("Claims")
+    report.text("Each claim of the paper, the fixed criterion it is checked with, our numbers, and the verdict "
+                "(holds / does not hold / undetermined when a number is missing).")
+    verdict = {True: "holds", False: "does not hold", None: "undetermined"}
+    for c in claims:
+        report.text(f"- **{c['id']}: {verdict[c['holds']]}.** {c['claim']} Criterion: {c['criterion']}. "
+                    f"Ours: {c['ours']}. Paper: {c['paper']}.")
+    report.table(["claim", "verdict"], [[c["id"], verdict[c["holds"]]] for c in claims])
+
+
+def _stages_section(report: Report, seconds: dict, ran: list[str], wall: float, total: float) -> None:
+    report.heading("Stages and wall time")
+    report.text(f"This invocation: {wall:.1f} s. All stages (including ones finished by an earlier invocation): "
+                f"{total:.1f} s. Stages rerun by this invocation: {len(ran)} of {len(seconds)}.")
+    report.table(["stage", "seconds", "this run"], [[name, s, "yes" if name in ran else "earlier"]
+                                                    for name, s in seconds.items()], digits=1)
