@@ -170,7 +170,9 @@ class RestClient:
                          npz_arrays=self._views_npz(frames), params={"min_score": min_score})
         return {**out, **_boxes_from_dicts(out["boxes"])}
 
-    def moving_objects(self, frames0: Frames, frames1: Frames, *, min_score: float = 0.0) -> dict:
+    def moving_objects(self, frames0: Frames, frames1: Frames, *, min_score: float = -1.0) -> dict:
+        """Boxes in ref = camera of frames0's view 0, scores (center-surround saliency in [−1, 1]),
+        velocities K×3 m/s."""
         out = self._post("/v1/moving-objects", **self._pair_bodies(frames0, frames1, min_score=min_score))
         return {**out, **_boxes_from_dicts(out["boxes"])}
 
@@ -309,7 +311,7 @@ class GrpcClient:
         r = self._call(self._stub.Detect, inference_pb2.DetectRequest(views=self._views(frames), min_score=min_score))
         return {"info": _info(r.info), **detections_dict(r.detections)}
 
-    def moving_objects(self, frames0: Frames, frames1: Frames, *, min_score: float = 0.0) -> dict:
+    def moving_objects(self, frames0: Frames, frames1: Frames, *, min_score: float = -1.0) -> dict:
         from n3dmap.v1 import inference_pb2
 
         req = inference_pb2.MovingObjectsRequest(views0=self._views(frames0), views1=self._views(frames1),

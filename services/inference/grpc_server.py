@@ -116,10 +116,12 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
     async def MovingObjects(self, request: inference_pb2.MovingObjectsRequest, context):
         async def run():
             pair = self._pair(request)
-            item = MovingInput(views0=pair.views0, views1=pair.views1, min_score=check_min_score(request.min_score))
+            score = check_min_score(request.min_score, low=-1.0) if request.HasField("min_score") else -1.0
+            item = MovingInput(views0=pair.views0, views1=pair.views1, min_score=score)
             answer = await self.runtime.infer("moving_objects", item, timeout_s=_deadline(context))
             return inference_pb2.DetectionsResponse(info=wire.info_proto(answer), detections=wire.detections_proto(
-                answer.result, frame=answer.frame, bundle_version=answer.bundle_version, views=pair.views1))
+                answer.result, frame=answer.frame, bundle_version=answer.bundle_version, views=pair.views1,
+                ref_views=pair.views0))
         return await self._call("MovingObjects", context, run)
 
     async def Models(self, request, context):
@@ -157,7 +159,7 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
                                                      time.perf_counter() - started)
                 await context.abort(_code_of(e), str(e))
             yield wire.detections_proto(answer.result, frame=answer.frame, bundle_version=answer.bundle_version,
-                                        views=views, latency_s=time.perf_counter() - received)
+                                        views=views, ref_views=prev, latency_s=time.perf_counter() - received)
         self.runtime.metrics.observe_request("grpc", "StreamMovingObjects", "OK", time.perf_counter() - started)
 
 

@@ -223,11 +223,11 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
               openapi_extra=_request_body_schema(schemas.MovingObjectsRequestJSON, "arrays rgb0, depth0, ..., rgb1, ..."),
               responses=_ERRORS)
     async def moving_route(request: Request,
-                           min_score: Annotated[float, Query(ge=0, le=1, description="binary bodies")] = 0.0):
+                           min_score: Annotated[float, Query(ge=-1, le=1, description="binary bodies")] = -1.0):
         body, (v0, v1) = await pair_item(request, schemas.MovingObjectsRequestJSON)
-        score = body.min_score if body is not None else check_min_score(min_score)
+        score = body.min_score if body is not None else check_min_score(min_score, low=-1.0)
         answer = await runtime.infer("moving_objects", MovingInput(views0=v0, views1=v1, min_score=score))
-        return detections_json(answer, v1)
+        return detections_json(answer, v1)  # boxes in ref = views0[0]'s camera; provenance of the newest frame
 
     @app.get("/v1/models", dependencies=guarded, response_model=schemas.ModelsResponseJSON, tags=["admin"],
              summary="The loaded bundle: version, preset, modules, available routes")

@@ -41,7 +41,7 @@ class DetectInput:
 class MovingInput:
     views0: Views
     views1: Views
-    min_score: float = 0.0
+    min_score: float = -1.0           # saliency scores lie in [−1, 1]: the default keeps every box
 
 
 @dataclass(frozen=True)

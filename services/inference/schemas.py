@@ -68,13 +68,13 @@ class PairRequestJSON(BaseModel):
 
 class DetectRequestJSON(BaseModel):
     views: Views = Field(min_length=1, max_length=MAX_VIEWS)
-    min_score: float = Field(0.0, ge=0.0, le=1.0)
+    min_score: float = Field(0.0, ge=0.0, le=1.0, description="objectness in [0, 1]")
 
 
 class MovingObjectsRequestJSON(BaseModel):
     views0: Views = Field(min_length=1, max_length=MAX_VIEWS)
     views1: Views = Field(min_length=1, max_length=MAX_VIEWS)
-    min_score: float = Field(0.0, ge=0.0, le=1.0)
+    min_score: float = Field(-1.0, ge=-1.0, le=1.0, description="center-surround saliency in [−1, 1]")
 
 
 class ReloadRequestJSON(BaseModel):

@@ -167,7 +167,8 @@ def check_pair(views0: Views, views1: Views, field1: str) -> None:
                                    f"instant's {views0.shape_key}")
 
 
-def check_min_score(value: float, field: str = "min_score") -> float:
-    if not (np.isfinite(value) and 0.0 <= value <= 1.0):
-        raise InvalidInput(field, f"must lie in [0, 1], got {value}")
+def check_min_score(value: float, field: str = "min_score", *, low: float = 0.0) -> float:
+    """A score threshold in [low, 1] (detection objectness: [0, 1]; moving-object saliency: [−1, 1])."""
+    if not (np.isfinite(value) and low <= value <= 1.0):
+        raise InvalidInput(field, f"must lie in [{low:g}, 1], got {value}")
     return float(value)

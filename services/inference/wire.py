@@ -135,9 +135,12 @@ def grid_proto(grid_dict: dict) -> inference_pb2.Grid:
 
 
 def detections_proto(result: DetectionsResult, *, frame: str, bundle_version: str, views: Views,
-                     latency_s: float = 0.0) -> types_pb2.Detections:
+                     ref_views: Views | None = None, latency_s: float = 0.0) -> types_pb2.Detections:
+    """Boxes in `ref` = the camera of `ref_views[0]` (default `views[0]`); camera id, sequence and
+    timestamp come from `views` (the newest frame of a pair)."""
+    ref_views = views if ref_views is None else ref_views
     return types_pb2.Detections(
         boxes=[types_pb2.Box3D(**b) for b in boxes_dicts(result, frame)], frame=frame,
         bundle_version=bundle_version, camera_id=views.camera_ids[0] if views.camera_ids else "",
         sequence=views.sequence, source_timestamp=views.timestamp, latency_s=latency_s,
-        world_T_frame=codecs.numpy_to_tensor(views.world_T_cam[0]))
+        world_T_frame=codecs.numpy_to_tensor(ref_views.world_T_cam[0]))
