@@ -1,0 +1,68 @@
+"""core.eval.moving_protocol on a hand-made record: one level camera, one box moving 0.5 m along x.
+
+With a level camera (rotation about Y only) boxes can be written in the camera frame, so the rig
+oracle 2D flow (boxes moved in world) must equal core.baselines.flow2d.oracle_flow2d (boxes in cam0).
+"""
+
+import numpy as np
+import torch
+
+from core.baselines.flow2d import oracle_flow2d
+from core.eval.moving_protocol import camera_setting, gt_moving_boxes, oracle_flow2d_rig
+from core.geometry.boxes import transform_boxes
+from core.presets import TINY
+
+H, W = 24, 32
+
+
+def _yaw_pose(yaw, t):
+    c, s = np.cos(yaw), np.sin(yaw)
+    T = np.eye(4, dtype=np.float32)
+    T[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    T[:3, 3] = t
+    return T
+
+
+def _record(camera_moves: bool):
+    K = np.eye(4, dtype=np.float32)
+    K[0, 0], K[1, 1], K[0, 2], K[1, 2] = 20.0, 20.0, (W - 1) / 2, (H - 1) / 2
+    world_T_cam0 = _yaw_pose(0.3, [5.0, 0.0, -2.0])
+    world_T_cam1 = _yaw_pose(0.3 + (0.05 if camera_moves else 0.0), [5.0 + (0.4 if camera_moves else 0.0), 0.0, -2.0])
+    # the box sits 10 m in front of camera 0 and drives 0.5 m along its own x axis
+    box0_cam = np.array([0.0, 0.0, 10.0, 4.0, 2.0, 2.0, 0.2])
+    box0 = transform_boxes(torch.as_tensor(world_T_cam0, dtype=torch.float64)[None],
+                           torch.as_tensor(box0_cam)[None, None])[0, 0].numpy()
+    box1 = box0.copy()
+    box1[0] += 0.5 * np.cos(box0[6])
+    box1[2] -= 0.5 * np.sin(box0[6])
+    depth = np.full((2, 1, H, W), 10.0, dtype=np.float32)  # a wall at z = 10 m cutting the box
+    return {"rgb": np.zeros((2, 1, H, W, 3), np.uint8), "depth": depth, "pix_T_cam": K[None],
+            "world_T_cam": np.stack([world_T_cam0, world_T_cam1])[:, None],
+            "world_T_ref": np.stack([world_T_cam0, world_T_cam1]),
+            "boxes": np.stack([box0, box1])[:, None].astype(np.float32), "box_valid": np.ones((2, 1), bool),
+            "box_id": np.array([1], np.int32), "box_moving": np.array([True])}
+
+
+def test_rig_oracle_flow_equals_camera_frame_oracle_for_a_level_camera():
+    for moves in (False, True):
+        rec = _record(moves)
+        flow = oracle_flow2d_rig(rec, 0, 0)
+        cam0_T_world = np.linalg.inv(rec["world_T_cam"][0, 0].astype(np.float64))
+        cam1_T_cam0 = np.linalg.inv(rec["world_T_cam"][1, 0].astype(np.float64)) @ rec["world_T_cam"][0, 0]
+        boxes_cam = transform_boxes(torch.as_tensor(cam0_T_world)[None].expand(2, 4, 4),
+                                    torch.as_tensor(rec["boxes"], dtype=torch.float64))  # 2×1×7
+        expected = oracle_flow2d(rec["depth"][0, 0], rec["pix_T_cam"][0], cam1_T_cam0, boxes_cam[0], boxes_cam[1])
+        np.testing.assert_allclose(flow, expected, atol=1e-4)
+        assert np.abs(flow).max() > 0.5  # the box's pixels move
+
+
+def test_camera_setting_and_ground_truth_boxes():
+    assert camera_setting(_record(False), 0) == "static"
+    assert camera_setting(_record(True), 0) == "moving"
+    rec = _record(False)
+    gt = gt_moving_boxes(rec, 0, TINY.grid, min_points=10)
+    # ref = camera 0: the box is where it was placed in camera coordinates
+    np.testing.assert_allclose(gt, [[0.0, 0.0, 10.0, 4.0, 2.0, 2.0, 0.2]], atol=1e-5)
+    assert len(gt_moving_boxes(rec, 0, TINY.grid, min_points=10_000)) == 0  # not enough points on it
+    rec["box_moving"][:] = False
+    assert len(gt_moving_boxes(rec, 0, TINY.grid)) == 0
