@@ -142,3 +142,24 @@ def test_bundle_round_trip_and_pipeline_detect(records, tmp_path):
         torch.testing.assert_close(g["boxes"], w["boxes"], atol=1e-4, rtol=1e-4)
         torch.testing.assert_close(g["scores"], w["scores"], atol=1e-5, rtol=1e-4)
         assert bool((g["scores"] >= 0.02).all())
+
+
+def test_cli_label_subset_holds_the_first_n_records(records, tmp_path):
+    import numpy as np
+
+    from core.data.shards import ShardDataset, write_dataset
+    from services.cli.main import CliError
+    from services.cli.train_tasks.detector import labelled_subset
+
+    data = tmp_path / "data"
+    write_dataset(data, records, split="train", preset_name="tiny", grid=TINY.grid.to_dict(),
+                  generator={"source": "test"}, seed=0)
+    run = tmp_path / "run"
+    subset = ShardDataset(labelled_subset(data, run, 1))
+    source = ShardDataset(data)
+    assert len(subset) == 1 and subset.key(0) == source.key(0)
+    for key, value in source[0].items():
+        np.testing.assert_array_equal(subset[0][key], value)
+    assert labelled_subset(data, run, 1) == run / "labelled_data"    # a rerun reuses it
+    with pytest.raises(CliError, match="first 1 records"):
+        labelled_subset(data, run, 2)
