@@ -116,7 +116,7 @@ class BenchConfig:
 # Per preset: (train, test) episodes, label budgets, StageSteps — the full and the quick profile.
 _PROFILES: dict[tuple[str, bool], dict] = {
     ("tiny", False): dict(train_episodes=12, test_episodes=8, label_budgets=(2, 6, None),
-                          steps=StageSteps(pretrain=60, detector=30, flow=40, egomotion=40)),
+                          steps=StageSteps(pretrain=150, detector=50, flow=80, egomotion=80)),
     ("small", False): dict(train_episodes=64, test_episodes=16, label_budgets=(2, 8, 32, None),
                            steps=StageSteps(pretrain=500, detector=200, flow=200, egomotion=200)),
     ("paper", False): dict(train_episodes=1024, test_episodes=100, label_budgets=(8, 32, 128, 512, None),
