@@ -80,6 +80,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"n3dmap {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `n3dmap ... | head`: the reader left; not an error worth a traceback
+        sys.stderr.close()
+        return 0
     return int(result or 0)
 
 
