@@ -22,7 +22,7 @@ from pathlib import Path
 
 import torch
 
-from core.errors import DataError
+from core.errors import DataError, N3dmapError
 from services.training.checkpoints import LocalCheckpointStore, load_checkpoint, read_checkpoint_state
 from services.training.config import TrainJobConfig
 from services.training.data import dataset_shard_paths
@@ -50,6 +50,10 @@ def check_dataset(config: TrainJobConfig) -> dict:
     if data_preset is not None and data_preset != config.preset:
         raise DataError(f"dataset {config.data_dir} was made with preset {data_preset!r}, "
                         f"but the run uses --preset {config.preset!r}")
+    needed = max(1, config.workers) * config.batch_size
+    if manifest["num_records"] < needed:
+        raise DataError(f"dataset {config.data_dir} has {manifest['num_records']} records; one step of "
+                        f"{max(1, config.workers)} worker(s) × --batch-size {config.batch_size} needs {needed}")
     return manifest
 
 
@@ -90,7 +94,12 @@ def ray_train_func(loop_config: dict) -> dict:
 
     torch.set_num_threads(max(1, int(loop_config.get("threads", 1))))
     config = TrainJobConfig.from_dict(loop_config["config"])
-    return train_loop(config, RaySession(config)).to_dict()
+    try:
+        return train_loop(config, RaySession(config)).to_dict()
+    except N3dmapError as e:
+        # Bad data / options / checkpoint: the same on every rank and on every retry, so end the run
+        # with the message instead of raising (Ray would restart the workers max_failures times).
+        return LoopOutcome(status="error", step=-1, start_step=-1, message=str(e)).to_dict()
 
 
 def _init_ray(config: TrainJobConfig) -> bool:

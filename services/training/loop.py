@@ -104,7 +104,7 @@ class TrainSession(Protocol):
 class LoopOutcome:
     """What the loop returns (rank 0's value becomes Ray's Result.return_value)."""
 
-    status: str                      # "finished" | "non_finite"
+    status: str                      # "finished" | "non_finite" | "error"
     step: int                        # last completed step
     start_step: int                  # step the run (re)started from
     message: str = ""
