@@ -66,9 +66,9 @@ def test_forwarded_argv_drops_submission_flags_and_makes_paths_absolute(tmp_path
     from services.cli.train import forwarded_argv
 
     monkeypatch.chdir(tmp_path)
-    args = build_parser().parse_args(
-        ["train", "pretrain", "--data", "d", "--run-dir", "r", "--objective", "regression", "--steps", "7",
-         "--freeze-features", "--address", "http://h:8265", "--follow", "--workers", "2"])
+    given = ["train", "pretrain", "--data", "d", "--run-dir", "r", "--objective", "regression", "--steps", "7",
+             "--freeze-features", "--address", "http://h:8265", "--follow", "--workers", "2"]
+    args = build_parser(given).parse_args(given)
     argv = forwarded_argv("pretrain", args)
     assert argv[:2] == ["train", "pretrain"] and argv[-1] == "--attach"
     assert "--address" not in argv and "--follow" not in argv
@@ -77,7 +77,7 @@ def test_forwarded_argv_drops_submission_flags_and_makes_paths_absolute(tmp_path
     assert "--steps" in argv and argv[argv.index("--steps") + 1] == "7"
     assert argv[argv.index("--objective") + 1] == "regression"
     # Parsing the forwarded command gives the same options back.
-    again = build_parser().parse_args(argv)
+    again = build_parser(argv).parse_args(argv)
     for name in ("steps", "objective", "freeze_features", "workers"):
         assert getattr(again, name) == getattr(args, name)
     assert again.attach and again.address is None
