@@ -132,7 +132,8 @@ def _set_train_mode(task: torch.nn.Module, exported: dict, frozen) -> None:
 
 def load_init_bundle(exported: dict[str, torch.nn.Module], bundle_dir: str, *, preset_name: str,
                      device: torch.device) -> list[str]:
-    """Copy the weights of the bundle's modules into the task's modules of the same name."""
+    """Copy the weights of the bundle's modules into the task's modules of the same name; returns
+    the names copied (possibly none)."""
     from core.bundle import load_bundle
 
     bundle = load_bundle(bundle_dir, device)
@@ -151,9 +152,8 @@ def load_init_bundle(exported: dict[str, torch.nn.Module], bundle_dir: str, *, p
                 raise TrainingError(f"--init {bundle_dir}: module {name!r} does not fit this task "
                                     f"({detail})") from None
             loaded.append(name)
-    if not loaded:
-        raise TrainingError(f"--init {bundle_dir}: none of its modules {sorted(bundle.modules)} "
-                            f"belong to this task ({sorted(exported)})")
+    # A task may share no module with its init bundle (egomotion learns its own encoder): then
+    # nothing is warm-started, and the bundle's modules are still carried into the export.
     return sorted(loaded)
 
 
