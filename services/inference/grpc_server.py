@@ -201,10 +201,13 @@ async def start_grpc_server(runtime: Runtime, *, host: str, port: int, token: st
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection.enable_server_reflection((SERVICE_NAME, health.SERVICE_NAME, reflection.SERVICE_NAME), server)
     address = f"{host}:{port}"
-    if tls_cert is not None:
-        bound = server.add_secure_port(address, grpc.ssl_server_credentials([(tls_key, tls_cert)]))
-    else:
-        bound = server.add_insecure_port(address)
+    try:
+        if tls_cert is not None:
+            bound = server.add_secure_port(address, grpc.ssl_server_credentials([(tls_key, tls_cert)]))
+        else:
+            bound = server.add_insecure_port(address)
+    except RuntimeError as e:  # grpcio raises when the port is taken (SO_REUSEPORT is off)
+        raise OSError(f"gRPC could not bind {address}: is the port taken? ({e})") from None
     if bound == 0:
         raise OSError(f"gRPC could not bind {address} (port taken?)")
     await server.start()

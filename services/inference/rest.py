@@ -114,15 +114,7 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
         return error_response(422, "invalid_input", "; ".join(
             f"{'.'.join(str(p) for p in x['loc'])}: {x['msg']}" for x in errs[:5]), field)
 
-    @app.middleware("http")
-    async def _observe(request: Request, call_next):
-        started = time.perf_counter()
-        response = await call_next(request)
-        route = request.scope.get("route")
-        path = getattr(route, "path", "unmatched")
-        if path.startswith("/v1/"):
-            runtime.metrics.observe_request("rest", path, str(response.status_code), time.perf_counter() - started)
-        return response
+    app.add_middleware(_ObserveRequests, metrics=runtime.metrics)
 
     async def parse(request: Request, model: type[BaseModel]) -> tuple[str, Any]:
         """('json', model instance) or ('npz', {name: array}); 415 for other content types."""
@@ -262,6 +254,32 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
 
     _add_component_schemas(app, extra_models)
     return app
+
+
+class _ObserveRequests:
+    """Pure ASGI middleware counting /v1 requests by route template and status (BaseHTTPMiddleware,
+    i.e. @app.middleware, would add a task and a body copy per request)."""
+
+    def __init__(self, app, *, metrics):
+        self.app, self.metrics = app, metrics
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        started = time.perf_counter()
+        status = {"code": 500}
+
+        async def send_and_note(message):
+            if message["type"] == "http.response.start":
+                status["code"] = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_and_note)
+        finally:
+            path = getattr(scope.get("route"), "path", "")
+            if path.startswith("/v1/"):
+                self.metrics.observe_request("rest", path, str(status["code"]), time.perf_counter() - started)
 
 
 class _Unauthorized(Exception):
