@@ -87,9 +87,16 @@ def moving_table(per_seed: dict) -> dict:
             for m in _get(r, "moving", setting) or {}:
                 if m not in methods:
                     methods.append(m)
+        methods.sort(key=_moving_order)
         first = next(iter(per_seed.values()), {})
         out[setting] = {m: {"ap": over_seeds(per_seed, "moving", setting, m, "ap"),
                             "gt_boxes": over_seeds(per_seed, "moving", setting, m, "gt_boxes"),
                             "curve": _get(first, "moving", setting, m, "curve")} for m in methods}
         out[f"pairs_{setting}"] = over_seeds(per_seed, "moving", "pairs", setting)
     return out
+
+
+def _moving_order(method: str) -> tuple[int, str]:
+    """Our models first, then the 2.5D baselines, then the oracle rows (upper bounds)."""
+    rank = 2 if "oracle" in method else 1 if method.startswith("2.5D") else 0
+    return rank, method

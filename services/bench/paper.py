@@ -3,19 +3,19 @@
 `run_paper_bench(config, out_dir)` runs, as resumable stages under OUT/work/ (services.bench.stages):
 
   data/train, data/test                 synthetic datasets (services.bench.data)
-  data/labels_<N>                       the first N training records, one per label budget
   seed<s>/pretrain_<arm>                view-contrastive and view-regression pretraining
   seed<s>/detector_<arm>_<mode>_L<N>    detector per arm (random/regression/contrastive), frozen or
-                                        fine-tuned features, per label budget
+                                        fine-tuned features, per label budget (trained on the first N
+                                        records, RUN_DIR/labelled_data, as `train detector --labels N`)
   seed<s>/flow_<arm>                    3D flow over the frozen features of each pretrained arm
   seed<s>/egomotion                     the egomotion module
-  seed<s>/eval/...                      one metrics.json per evaluation (detection mAP, retrieval,
+  seed<s>/eval/<kind>/<name>            one metrics.json per evaluation (detection mAP, retrieval,
                                         occupancy, flow EPE, egomotion vs ICP, moving objects)
 
 then writes OUT/report.md, OUT/metrics.json and the PNG plots (services.bench.report). Training goes
-through the training CLI's own job runner (services.bench.training); flow, occupancy and egomotion are
-scored by the `n3dmap eval` kinds' `evaluate` functions; detection, moving objects and retrieval by
-services.bench.eval_* over the same core metrics.
+through the training CLI's own job runner (services.bench.training); every evaluation is scored by the
+`n3dmap eval` kinds' own `evaluate` functions (services/cli/eval_tasks, reduced to JSON by
+services.bench.evaluations).
 """
 
 from __future__ import annotations
@@ -101,20 +101,13 @@ def _load_records(data_dir: Path) -> list[dict]:
 # ----------------------------------------------------------------------------- data
 
 def _data_stages(stages: StageRunner, config: BenchConfig) -> dict:
-    from services.bench.data import generate_split, write_label_subset
+    from services.bench.data import generate_split
 
     train = stages.run("data/train", DATA_MARKER, lambda d: generate_split(
         d, preset=config.preset, episodes=config.train_episodes, seed=config.data_seed, split="train"))
     test = stages.run("data/test", DATA_MARKER, lambda d: generate_split(
         d, preset=config.preset, episodes=config.test_episodes, seed=config.data_seed + 1, split="val"))
-    labels = {}
-    for budget in config.label_budgets:
-        if budget is None:
-            labels[None] = train
-        else:
-            labels[budget] = stages.run(f"data/labels_{budget}", DATA_MARKER,
-                                        lambda d, n=budget: write_label_subset(train, d, count=n))
-    return {"train": train, "test": test, "labels": labels}
+    return {"train": train, "test": test}
 
 
 # ----------------------------------------------------------------------------- one seed
@@ -122,20 +115,25 @@ def _data_stages(stages: StageRunner, config: BenchConfig) -> dict:
 def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict, test_records: list[dict],
                  device, preset) -> dict:
     from core.bundle import Bundle, load_bundle
+    from services.bench import evaluations
     from services.bench.training import train_stage
+    from services.cli.train_tasks.detector import labelled_subset
 
     s = f"seed{seed}"
     steps = config.steps
 
-    def train(name: str, **kw) -> Path:
-        run = stages.run(f"{s}/{name}", TRAIN_MARKER, lambda d: train_stage(config, run_dir=d, seed=seed, **kw))
-        return run / "bundle"
+    def train(name: str, *, label_budget: int | None = None, data_dir: Path = data["train"], **kw) -> Path:
+        def run(d: Path) -> None:
+            # A label budget trains on the first N records, as `n3dmap train detector --labels N` does.
+            source = data_dir if label_budget is None else labelled_subset(data_dir, d, label_budget)
+            train_stage(config, run_dir=d, seed=seed, data_dir=source, **kw)
+        return stages.run(f"{s}/{name}", TRAIN_MARKER, run) / "bundle"
 
     def evaluate(name: str, fn: Callable[[], dict]) -> dict:
         stage_dir = stages.run(f"{s}/eval/{name}", EVAL_MARKER, lambda d: write_json(d / EVAL_MARKER, _jsonable(fn())))
         return json.loads((stage_dir / EVAL_MARKER).read_text())
 
-    pretrained = {arm: train(f"pretrain_{arm}", task="pretrain", data_dir=data["train"], steps=steps.pretrain,
+    pretrained = {arm: train(f"pretrain_{arm}", task="pretrain", steps=steps.pretrain,
                              task_options={"objective": arm}) for arm in PRETRAINED_ARMS}
     result: dict = {"detection": {}, "retrieval": {}, "occupancy": {}, "flow": {}}
 
@@ -144,68 +142,64 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
         for budget in config.budgets_sorted:
             name = detector_stage(arm, mode, budget)
             frozen = mode == "frozen"
-            bundle_dir = train(name, task="detector", data_dir=data["labels"][budget], steps=steps.detector,
+            bundle_dir = train(name, task="detector", steps=steps.detector, label_budget=budget,
                                task_options={"labels": None, "freeze_features": frozen},
                                init_bundle=pretrained.get(arm), freeze=("mapper",) if frozen else (),
                                batch_size=min(config.batch_size or preset.train.batch_size,
                                               config.budget_records(budget)))
-            from services.bench.eval_detection import evaluate_detection
-            metrics = evaluate(name, lambda b=bundle_dir: evaluate_detection(
-                load_bundle(b, device), test_records, device=device))
-            result["detection"][f"{arm}/{mode}/{budget_name(budget)}"] = metrics
+            result["detection"][f"{arm}/{mode}/{budget_name(budget)}"] = evaluate(
+                f"detection/{arm}_{mode}_L{budget_name(budget)}",
+                lambda b=bundle_dir: evaluations.detection(load_bundle(b, device), test_records, device=device))
 
-    # Retrieval per arm (random: untrained, seeded weights).
-    from services.bench.eval_retrieval import evaluate_retrieval, pretrain_model
+    # Retrieval per arm (random: an untrained, seeded model).
     for arm in ("random", *PRETRAINED_ARMS):
-        result["retrieval"][arm] = evaluate(f"retrieval_{arm}", lambda a=arm: evaluate_retrieval(
-            pretrain_model(preset, arm=a, bundle_dir=pretrained.get(a), seed=seed), test_records, device=device,
-            per_example=config.retrieval_per_example, size=config.retrieval_patch, seed=seed))
+        def retrieval(a=arm) -> dict:
+            bundle = (evaluations.random_pretrain_bundle(preset, seed=seed, device=device) if a == "random"
+                      else load_bundle(pretrained[a], device))
+            return evaluations.retrieval(bundle, test_records, device=device, per_example=config.retrieval_per_example,
+                                         cube=config.retrieval_cube, seed=seed)
+        result["retrieval"][arm] = evaluate(f"retrieval/{arm}", retrieval)
 
     # Occupancy of each pretrained model's head, from one view (the paper's protocol).
     from services.cli.eval_tasks import occupancy as eval_occupancy
     for arm in PRETRAINED_ARMS:
-        result["occupancy"][arm] = evaluate(f"occupancy_{arm}", lambda a=arm: eval_occupancy.evaluate(
+        result["occupancy"][arm] = evaluate(f"occupancy/{arm}", lambda a=arm: eval_occupancy.evaluate(
             load_bundle(pretrained[a], device), test_records, device=device, input_view=0, threshold=0.5)["scores"])
 
     # 3D flow over the frozen features of each pretrained arm, scored against the zero-motion row.
     from services.cli.eval_tasks import flow as eval_flow
-    flows = {arm: train(f"flow_{arm}", task="flow", data_dir=data["train"], steps=steps.flow,
+    flows = {arm: train(f"flow_{arm}", task="flow", steps=steps.flow,
                         init_bundle=pretrained[arm], freeze=("mapper",)) for arm in PRETRAINED_ARMS}
     for arm in PRETRAINED_ARMS:
-        result["flow"][arm] = evaluate(f"flow_{arm}", lambda a=arm: eval_flow.evaluate(
+        result["flow"][arm] = evaluate(f"flow/{arm}", lambda a=arm: eval_flow.evaluate(
             load_bundle(flows[a], device), test_records, device=device, moving_threshold=1e-3)["scores"])
 
     # Egomotion vs ICP and identity, on the test pairs whose camera moves.
     from core.eval.egomotion_metrics import summarize_errors
-    from services.bench.eval_moving import camera_moves
+    from core.eval.moving_protocol import camera_setting
     from services.cli.eval_tasks import egomotion as eval_egomotion
-    ego_dir = train("egomotion", task="egomotion", data_dir=data["train"], steps=steps.egomotion)
-    moving_cam = [r for r in test_records if r["rgb"].shape[0] > 1 and camera_moves(r)] or test_records
+    ego_dir = train("egomotion", task="egomotion", steps=steps.egomotion)
+    moving_cam = [r for r in test_records if r["rgb"].shape[0] > 1 and camera_setting(r, 0) == "moving"] or test_records
 
     def egomotion_metrics() -> dict:
         res = eval_egomotion.evaluate(load_bundle(ego_dir, device), moving_cam, device=device, perturb_deg=0.0,
                                       perturb_m=0.0, seed=seed, icp=True)
         return {"methods": {k: summarize_errors(v) for k, v in res["methods"].items()},
                 "gt_motion": {k: float(v.mean()) for k, v in res["gt_motion"].items()}}
-    result["egomotion"] = evaluate("egomotion", egomotion_metrics)
+    result["egomotion"] = evaluate("egomotion/moving_camera", egomotion_metrics)
 
-    # Moving objects: flow bundles (+ the egomotion module for the moving camera) vs the 2.5D baseline.
-    from services.bench.eval_moving import evaluate_moving
-
+    # Moving objects: each arm's flow bundle (stabilised with the poses), the contrastive one also with
+    # the trained egomotion module; the 2.5D baselines come with the first.
     def moving_metrics() -> dict:
         ego = load_bundle(ego_dir, device).modules["egomotion"]
-        bundles = {}
-        for arm in PRETRAINED_ARMS:
-            b = load_bundle(flows[arm], device)
-            modes = ("poses",)
-            if arm == "contrastive":
-                b = Bundle(preset=b.preset, modules={**b.modules, "egomotion": ego}, meta=b.meta, path=b.path)
-                modes = ("poses", "egomotion")
-            bundles[arm] = (b, modes)
-        return evaluate_moving(bundles, test_records, device=device, iou=config.moving_iou, grid=preset.grid,
-                               flow2d_threshold=config.flow2d_threshold_px,
-                               flow2d_min_pixels=config.flow2d_min_pixels)
-    result["moving"] = evaluate("moving", moving_metrics)
+        contrastive = load_bundle(flows["contrastive"], device)
+        with_ego = Bundle(preset=contrastive.preset, modules={**contrastive.modules, "egomotion": ego},
+                          meta=contrastive.meta, path=contrastive.path)
+        bundles = {"contrastive, GT egomotion": contrastive, "contrastive, egomotion module": with_ego,
+                   "regression, GT egomotion": load_bundle(flows["regression"], device)}
+        return evaluations.moving(bundles, test_records, device=device, iou=config.moving_iou,
+                                  threshold_px=config.flow2d_threshold_px, min_pixels=config.flow2d_min_pixels)
+    result["moving"] = evaluate("moving/all", moving_metrics)
     return result
 
 

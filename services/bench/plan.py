@@ -66,7 +66,7 @@ class BenchConfig:
     workers: int = 0                           # 0: train in this process; N: Ray Train with N workers
     device: str = "auto"                       # auto | cpu | cuda
     retrieval_per_example: int = 10            # patch pairs per (record, target view): the paper's 10
-    retrieval_patch: int = 3                   # side of the 2D patches and 3D feature cubes
+    retrieval_cube: int = 3                    # side of the 3D feature cubes (2D patches: the eval kind's 5)
     moving_iou: float = 0.5                    # the paper's PR curves use 3D IoU 0.5
     flow2d_threshold_px: float = 1.0           # 2.5D baseline: pixels of 2D flow that count as motion
     flow2d_min_pixels: int = 20                # 2.5D baseline: smaller 2D clusters are dropped
@@ -93,8 +93,8 @@ class BenchConfig:
                                        f"and mode one of {MODES}")
         if self.workers < 0:
             raise BenchConfigError(f"workers must be >= 0, got {self.workers}")
-        if self.retrieval_per_example < 1 or self.retrieval_patch < 1 or self.retrieval_patch % 2 == 0:
-            raise BenchConfigError("retrieval needs >= 1 pair per example and an odd patch size")
+        if self.retrieval_per_example < 1 or self.retrieval_cube < 1 or self.retrieval_cube % 2 == 0:
+            raise BenchConfigError("retrieval needs >= 1 pair per example and an odd cube size")
 
     @property
     def budgets_sorted(self) -> tuple[int | None, ...]:
@@ -116,7 +116,7 @@ class BenchConfig:
 # Per preset: (train, test) episodes, label budgets, StageSteps — the full and the quick profile.
 _PROFILES: dict[tuple[str, bool], dict] = {
     ("tiny", False): dict(train_episodes=12, test_episodes=8, label_budgets=(2, 6, None),
-                          steps=StageSteps(pretrain=150, detector=50, flow=80, egomotion=80)),
+                          steps=StageSteps(pretrain=100, detector=40, flow=60, egomotion=60)),
     ("small", False): dict(train_episodes=64, test_episodes=16, label_budgets=(2, 8, 32, None),
                            steps=StageSteps(pretrain=500, detector=200, flow=200, egomotion=200)),
     ("paper", False): dict(train_episodes=1024, test_episodes=100, label_budgets=(8, 32, 128, 512, None),
