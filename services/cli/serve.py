@@ -22,7 +22,7 @@ def register(subparsers) -> None:
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default)")
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     p.add_argument("--max-batch", type=int, default=8, help="largest micro-batch (default 8)")
-    p.add_argument("--max-wait-ms", type=float, default=5.0, help="longest wait to fill a batch (default 5)")
+    p.add_argument("--max-wait-ms", type=float, default=2.0, help="longest wait to fill a batch (default 2)")
     p.add_argument("--queue", type=int, default=64, help="waiting requests before 429 (default 64)")
     p.add_argument("--timeout", type=float, default=30.0, help="per-request deadline in seconds (default 30)")
     p.add_argument("--max-body-mb", type=float, default=64.0, help="largest request body (default 64 MB)")

@@ -39,7 +39,7 @@ class RuntimeConfig:
     device: str = "auto"                 # "cpu", "cuda", "cuda:1", or "auto" (cuda if available)
     num_threads: int | None = None       # torch intra-op threads; None = torch's default
     max_batch: int = 8
-    max_wait_ms: float = 5.0
+    max_wait_ms: float = 2.0
     max_queue: int = 64
     timeout_s: float = 30.0              # per-request deadline (queue + model)
 
