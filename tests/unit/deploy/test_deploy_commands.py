@@ -184,6 +184,30 @@ def test_kuberay_start_params_are_ray_start_options():
         for group in [cluster["headGroupSpec"], *cluster["workerGroupSpecs"]]:
             argv = ["start"] + [f"--{k}={v}" for k, v in group["rayStartParams"].items()]
             m.parse_ray(argv, f"{path.name}: rayStartParams")
+            # KubeRay writes the `ray start` command itself; a command of ours would replace the
+            # images' ENTRYPOINT only with the overwrite annotation and $KUBERAY_GEN_RAY_START_CMD.
+            annotations = group["template"].get("metadata", {}).get("annotations", {})
+            for c in group["template"]["spec"]["containers"]:
+                if "command" in c or "args" in c:
+                    assert annotations.get("ray.io/overwrite-container-cmd") == "true", (
+                        f"{path.name}: Ray container {c['name']} sets command/args without the "
+                        f"ray.io/overwrite-container-cmd annotation; KubeRay would mangle them")
+
+
+def test_submission_examples_name_paths_every_raycluster_node_mounts():
+    clusters = [(p, d) for p, d in m.k8s_documents() if d.get("kind") == "RayCluster"]
+    assert clusters
+    for path, doc in clusters:
+        examples = [c for c in m.commands_in_text(path.read_text(), path.name) if c.argv[:1] == ["train"]]
+        assert examples, f"{path.name} shows no `n3dmap train --address` example"
+        for command in examples:
+            args, _ = m.parse_n3dmap(command.argv, command.where)
+            assert args.address, f"{command.where}: a RayCluster takes jobs through --address"
+            for pod in m.pod_specs(path, doc):
+                (container,) = pod.spec["containers"]
+                for option in ("data", "run_dir"):
+                    assert _under(getattr(args, option), _mount_points(container, "k8s")), (
+                        f"{command.where}: --{option.replace('_', '-')} {getattr(args, option)} is not mounted in {pod.where}")
 
 
 def _zenoh_listen_ports(config_path) -> dict[str, int]:
