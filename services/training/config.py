@@ -154,7 +154,8 @@ def resolve_defaults(config: TrainJobConfig) -> TrainJobConfig:
         init_bundle=os.path.abspath(config.init_bundle) if config.init_bundle else None,
         steps=config.steps if config.steps is not None else defaults.steps,
         batch_size=config.batch_size if config.batch_size is not None else defaults.batch_size,
-        lr=config.lr if config.lr is not None else defaults.lr,
+        # flow trains at the preset's flow_lr (the paper: 1e-4 for flow), every other task at lr
+        lr=config.lr if config.lr is not None else (defaults.flow_lr if config.task == "flow" else defaults.lr),
         checkpoint_every=(config.checkpoint_every if config.checkpoint_every is not None
                           else defaults.checkpoint_every),
     )

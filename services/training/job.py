@@ -69,6 +69,8 @@ def run_training(config: TrainJobConfig, *, spec: TaskSpec = CORE_TASKS) -> RunS
         outcome, checkpoint_dir = _run_on_ray(config)
     if outcome.status != "finished":
         raise TrainingError(outcome.message)
+    if checkpoint_dir is None:  # nothing trained this time (already at --steps): use the newest
+        checkpoint_dir = latest_checkpoint_dir(config)
     if checkpoint_dir is None:
         raise TrainingError(f"run {config.run_dir} finished but left no checkpoint")
     bundle_dir = export_bundle(config, checkpoint_dir, outcome=outcome, manifest=manifest, spec=spec)
@@ -108,12 +110,14 @@ def _init_ray(config: TrainJobConfig) -> bool:
 
     if ray.is_initialized():
         return False
-    pythonpath = os.pathsep.join(p for p in (str(PROJECT_ROOT), os.environ.get("PYTHONPATH")) if p)
-    runtime_env = {"env_vars": {"PYTHONPATH": pythonpath}}
     if config.attach:
         # Inside a Ray Jobs entrypoint: join that cluster (RAY_ADDRESS is set by the job supervisor).
-        ray.init(address="auto", runtime_env=runtime_env, log_to_driver=False)
+        # No runtime_env here: the job's own (its uploaded working_dir) must reach every node.
+        ray.init(address="auto", log_to_driver=False)
         return True
+    # Workers import `core`/`services` from this checkout even when n3dmap is not pip-installed.
+    pythonpath = os.pathsep.join(p for p in (str(PROJECT_ROOT), os.environ.get("PYTHONPATH")) if p)
+    runtime_env = {"env_vars": {"PYTHONPATH": pythonpath}}
     gpus = int(round(config.workers * config.gpus_per_worker + 0.499)) if config.gpus_per_worker else 0
     ray.init(
         address="local",

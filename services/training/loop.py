@@ -199,6 +199,7 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
             print(f"resuming {config.task} from step {start_step} ({config.run_dir})", flush=True)
 
     step = start_step
+    saved_step = start_step  # the newest checkpoint of the run (0: none yet)
     names: list[str] | None = None
     sums: torch.Tensor | None = None
     last: dict[str, float] = {}
@@ -217,15 +218,15 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
             reduced = session.all_reduce_mean(torch.stack([metrics[k] for k in names]))
             values = dict(zip(names, reduced.tolist()))
             if not all(math.isfinite(v) for v in values.values()):
-                return _stopped(step, start_step, values, f"non-finite loss at step {step + 1} "
-                                f"({_format_bad(values)})", sums, names)
+                return _stopped(step, start_step, saved_step, values, f"non-finite loss at step "
+                                f"{step + 1} ({_format_bad(values)})", sums, names)
 
             optimizer.zero_grad(set_to_none=True)
             out["loss"].backward()
             max_norm = config.grad_clip if config.grad_clip > 0 else float("inf")
             grad_norm = torch.nn.utils.clip_grad_norm_(trainable, max_norm)
             if not torch.isfinite(grad_norm):  # DDP all-reduced the grads: the same on every rank
-                return _stopped(step, start_step, values, f"non-finite gradient norm at step "
+                return _stopped(step, start_step, saved_step, values, f"non-finite gradient norm at step "
                                 f"{step + 1} (loss={values['loss']:.4g})", sums, names)
             optimizer.step()
             step += 1
@@ -238,6 +239,7 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
             _maybe_inject_fault(config, session, step)
             if step % config.checkpoint_every == 0 or step == config.steps:
                 _report_checkpoint(config, session, task, optimizer, step, values)
+                saved_step = step
             if step >= config.steps:
                 break
         if batches_this_epoch == 0:
@@ -251,10 +253,11 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
                        mean_metrics=mean)
 
 
-def _stopped(step, start_step, values, message, sums, names) -> LoopOutcome:
+def _stopped(step, start_step, saved_step, values, message, sums, names) -> LoopOutcome:
     done = step - start_step
     mean = ({k: v / done for k, v in zip(names, sums.tolist())} if sums is not None and done else {})
-    last_good = f"; last good checkpoint: the newest in the run dir (step <= {step})"
+    last_good = (f"; run stopped, its last good checkpoint is step {saved_step}" if saved_step
+                 else "; run stopped before its first checkpoint")
     return LoopOutcome(status="non_finite", step=step, start_step=start_step,
                        message=message + last_good, last_metrics=values, mean_metrics=mean)
 

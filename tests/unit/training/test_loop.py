@@ -54,6 +54,7 @@ def test_non_finite_loss_stops_before_the_step_and_keeps_the_last_good_checkpoin
     assert outcome.status == "non_finite"
     assert outcome.step == 12  # steps 1..12 completed; the 13th forward gave NaN
     assert outcome.message.startswith("non-finite loss at step 13 (loss=nan")
+    assert outcome.message.endswith("run stopped, its last good checkpoint is step 10")
     assert "\n" not in outcome.message
     latest = LocalSession(config, dataset=[]).store.latest()
     state = read_checkpoint_state(latest)
