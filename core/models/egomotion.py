@@ -11,14 +11,24 @@ Per scale s (coarse to fine, each an average-pooled copy of the module's OWN fea
    never a warped volume again, so interpolation error does not accumulate);
 3. a 3D cross-correlation cost volume against the reference over displacements within ±radius voxels,
    averaged over space -> one score per (rotation, displacement), standardised per example;
-4. a small MLP maps the scores to a 6-DoF update δ = (ω rad axis-angle, t metres) expressed in ref0;
-   E ← exp(δ) · E.
+4. a 6-DoF update δ = (ω rad axis-angle, t metres) expressed in ref0, E ← exp(δ) · E, made of
+   a) a soft-argmax over the scores (a correlator that works from the first step): with p = softmax(β·s)
+      over all (rotation i, displacement d), ω = Σ p_i·(Euler offsets of R_i) (small angles, so Euler ≈
+      axis-angle) and t = −voxel_s · Σ p_d·d. Why minus: a peak at d means warped(p + d) ≈ ref(p), i.e.
+      the candidate E_i lands the query d voxels too far, so the truth is shift(−d)·R_i·E; exp(δ) =
+      shift(t)·R(ω) composes in exactly that order. β (one per scale) is learned;
+   b) plus a residual from a small MLP on the same scores.
 The estimate entering a scale is detached (each scale is supervised on its own; the gradient does not
 run back through the sampling coordinates into coarser scales). The last layer of every MLP starts at
-zero, so an untrained module predicts the identity.
+zero, so an untrained module is the plain soft-argmax correlator; with `soft_argmax=False` it predicts
+the identity. Measured on tiny held-out pairs (tests/benchmarks/bench_issue4_training.py): the MLP
+alone, trained from identity, added spurious rotation (3.2° vs identity 0.87°) — the prior fixes the
+scale and sign of the update, so the MLP only learns a small correction.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 import torch.nn.functional as F
@@ -28,8 +38,8 @@ from core.errors import check_shape
 from core.geometry import se3
 from core.geometry.grid import GridConfig
 from core.geometry.resample import warp_rigid
-from core.models.cost_volume import cross_correlation_3d
-from core.models.egomotion_rotations import candidate_rotations
+from core.models.cost_volume import cross_correlation_3d, displacements
+from core.models.egomotion_rotations import candidate_angles, candidate_rotations
 from core.models.encoder3d import Encoder3D
 
 
@@ -58,7 +68,8 @@ class EgomotionNet(nn.Module):
                  feature_dim: int = 16, scales: tuple[float, ...] | None = None,
                  rotation_steps_deg: tuple[tuple[float, float, float], ...] | None = None,
                  rotation_counts: tuple[int, int, int] = (3, 3, 3),
-                 radius: tuple[int, int, int] = (2, 1, 2), hidden: int = 128) -> None:
+                 radius: tuple[int, int, int] = (2, 1, 2), hidden: int = 128, soft_argmax: bool = True,
+                 temperature: float = 4.0) -> None:
         super().__init__()
         self.grid = grid if isinstance(grid, GridConfig) else GridConfig.from_dict(grid)
         self.scales = tuple(scales) if scales is not None else default_scales(self.grid)
@@ -73,6 +84,10 @@ class EgomotionNet(nn.Module):
         self.rotation_counts = tuple(int(n) for n in rotation_counts)
         self.radius = tuple(int(r) for r in radius)
         self.in_channels, self.width, self.feature_dim, self.hidden = in_channels, width, feature_dim, hidden
+        self.soft_argmax, self.temperature = bool(soft_argmax), float(temperature)
+        # β of the soft-argmax per scale, learned in log space (β > 0); scores are standardised, so β ≈ 4
+        # puts most of the mass on the few best candidates of an untrained encoder.
+        self.log_beta = nn.Parameter(torch.full((len(self.scales),), math.log(self.temperature)))
         self.encoder = Encoder3D(in_channels=in_channels, width=width, out_channels=feature_dim)
         n_rot = self.rotation_counts[0] * self.rotation_counts[1] * self.rotation_counts[2]
         n_disp = (2 * self.radius[0] + 1) * (2 * self.radius[1] + 1) * (2 * self.radius[2] + 1)
@@ -86,13 +101,16 @@ class EgomotionNet(nn.Module):
         for i, steps in enumerate(self.rotation_steps_deg):
             self.register_buffer(f"candidates_{i}", candidate_rotations(steps, self.rotation_counts),
                                  persistent=False)
+            self.register_buffer(f"candidate_angles_{i}", candidate_angles(steps, self.rotation_counts),
+                                 persistent=False)
+        self.register_buffer("displacements", displacements(self.radius), persistent=False)
 
     def config(self) -> dict:
         return {"grid": self.grid.to_dict(), "in_channels": self.in_channels, "width": self.width,
                 "feature_dim": self.feature_dim, "scales": list(self.scales),
                 "rotation_steps_deg": [list(s) for s in self.rotation_steps_deg],
                 "rotation_counts": list(self.rotation_counts), "radius": list(self.radius),
-                "hidden": self.hidden}
+                "hidden": self.hidden, "soft_argmax": self.soft_argmax, "temperature": self.temperature}
 
     def scale_grid(self, scale: float) -> GridConfig:
         return self.grid if scale == 1.0 else self.grid.scaled(scale)
@@ -119,6 +137,16 @@ class EgomotionNet(nn.Module):
         s = cost.mean(dim=(2, 3, 4)).reshape(B, -1)  # B×(R·D)
         return (s - s.mean(1, keepdim=True)) / (s.std(1, keepdim=True) + 1e-6)
 
+    def prior_update(self, scores: torch.Tensor, index: int, grid: GridConfig) -> torch.Tensor:
+        """Soft-argmax of one scale's scores B×(R·D) -> δ B×6 (ω rad, t metres in ref0); see module doc."""
+        B = scores.shape[0]
+        angles = getattr(self, f"candidate_angles_{index}").to(scores.dtype)  # R×3
+        disp = self.displacements.to(scores.dtype)  # D×3 (x, y, z) voxels
+        p = torch.softmax(self.log_beta[index].exp() * scores, dim=1).reshape(B, angles.shape[0], disp.shape[0])  # B×R×D
+        omega = p.sum(2) @ angles  # B×3
+        t = -(p.sum(1) @ disp) * grid.voxel_size  # B×3
+        return torch.cat([omega, t], dim=1)
+
     def forward(self, reference_input: torch.Tensor, query_input: torch.Tensor) -> dict[str, torch.Tensor]:
         """reference_input (ref0), query_input (ref1): B×Cin×Z×Y×X input volumes.
 
@@ -137,6 +165,8 @@ class EgomotionNet(nn.Module):
             candidates = getattr(self, f"candidates_{i}").to(feats.dtype)
             scores = self.scores(ref_s, query_s, estimate.detach(), candidates, grid_s)
             delta = head(scores)  # B×6
+            if self.soft_argmax:
+                delta = delta + self.prior_update(scores, i, grid_s)
             estimate = se3_exp_update(delta) @ estimate.detach()  # B×4×4
             per_scale.append(estimate)
         return {"ref0_T_ref1": estimate, "per_scale": torch.stack(per_scale, dim=0)}

@@ -16,6 +16,15 @@ import torch
 from core.geometry import se3
 
 
+def candidate_angles(steps_deg: tuple[float, float, float], counts: tuple[int, int, int] = (3, 3, 3), *,
+                     dtype=torch.float32, device=None) -> torch.Tensor:
+    """The Euler offsets (rx, ry, rz) radians of `candidate_rotations`, in its order: R×3."""
+    if any(n < 1 or n % 2 == 0 for n in counts):
+        raise ValueError(f"candidate_rotations: counts must be odd and positive, got {counts}")
+    axes = [[(k - (n - 1) / 2) * math.radians(s) for k in range(n)] for s, n in zip(steps_deg, counts)]
+    return torch.tensor(list(itertools.product(*axes)), dtype=torch.float64).to(dtype=dtype, device=device)  # R×3
+
+
 def candidate_rotations(steps_deg: tuple[float, float, float], counts: tuple[int, int, int] = (3, 3, 3), *,
                         dtype=torch.float32, device=None) -> torch.Tensor:
     """Cartesian product of per-axis offsets k·step for k in [-(n-1)/2, (n-1)/2].
@@ -23,10 +32,7 @@ def candidate_rotations(steps_deg: tuple[float, float, float], counts: tuple[int
     steps_deg: (rx, ry, rz) spacing in degrees; counts: offsets per axis (odd, so identity is included).
     Returns R×4×4 pure rotations, R = nx·ny·nz (27 for the default 3×3×3); index R//2 is the identity.
     """
-    if any(n < 1 or n % 2 == 0 for n in counts):
-        raise ValueError(f"candidate_rotations: counts must be odd and positive, got {counts}")
-    axes = [[(k - (n - 1) / 2) * math.radians(s) for k in range(n)] for s, n in zip(steps_deg, counts)]
-    angles = torch.tensor(list(itertools.product(*axes)), dtype=torch.float64)  # R×3 (rx, ry, rz)
+    angles = candidate_angles(steps_deg, counts, dtype=torch.float64)  # R×3 (rx, ry, rz)
     R = se3.euler_to_matrix(angles[:, 0], angles[:, 1], angles[:, 2])  # R×3×3
     T = se3.from_rt(R, torch.zeros(len(angles), 3, dtype=torch.float64))  # R×4×4
     return T.to(dtype=dtype, device=device)

@@ -4,9 +4,11 @@ Conventions (DESIGN.md §2): feature volumes B×F×Z×Y×X in the SAME frame (`r
 already registered into it); flow volumes B×3×Z×Y×X, channels (x, y, z), voxel units, from t to t+1:
     f1(p + flow(p)) ≈ f0(p).
 
-Per level l = 1..levels (coarsest first; level l has 2^l-times coarser voxels, from average pooling;
-as in PWC-Net the finest decoder runs at half resolution and its flow is upsampled to the grid, which
-costs 8× less than a full-resolution decoder):
+Per level l = finest..finest+levels-1 (coarsest first; level l has 2^l-times coarser voxels, from
+average pooling; by default, as in PWC-Net, the finest decoder runs at half resolution (`finest=1`) and
+its flow is upsampled to the grid, which costs 8× less than a full-resolution decoder. At coarse grids
+(tiny: 1 m voxels, cars ~4×2×2 voxels) half resolution blurs a car into the static background around
+it, so `finest=0` runs the last decoder on the grid itself):
 1. upsample the coarser level's flow (trilinear, values scaled by the size ratio per axis);
 2. warp the level's second pyramid volume by it (backward warp `warp_flow`; PWC's incremental warping);
 3. local 3D cost volume (cross-correlation within ±radius voxels) between the first volume and the warp;
@@ -60,8 +62,11 @@ class Flow3D(nn.Module):
     """(f0, f1): B×F×Z×Y×X each -> flow B×3×Z×Y×X (plus the per-level flows, coarse to fine)."""
 
     def __init__(self, *, in_channels: int = 32, channels: int = 16, levels: int = 3,
-                 radius: tuple[int, int, int] = (1, 1, 1), hidden: int = 32) -> None:
+                 radius: tuple[int, int, int] = (1, 1, 1), hidden: int = 32, finest: int = 1) -> None:
         super().__init__()
+        if finest not in (0, 1):
+            raise ValueError(f"Flow3D: finest must be 0 (grid) or 1 (half resolution), got {finest}")
+        self.finest = int(finest)
         self.in_channels, self.channels, self.levels, self.hidden = in_channels, channels, levels, hidden
         self.radius = tuple(int(r) for r in radius)
         self.features = nn.Sequential(
@@ -80,7 +85,7 @@ class Flow3D(nn.Module):
 
     def config(self) -> dict:
         return {"in_channels": self.in_channels, "channels": self.channels, "levels": self.levels,
-                "radius": list(self.radius), "hidden": self.hidden}
+                "radius": list(self.radius), "hidden": self.hidden, "finest": self.finest}
 
     def forward(self, f0: torch.Tensor, f1: torch.Tensor) -> dict[str, torch.Tensor | list[torch.Tensor]]:
         """f0, f1: B×F×Z×Y×X (same frame) -> {"flow": B×3×Z×Y×X (grid resolution),
@@ -89,11 +94,11 @@ class Flow3D(nn.Module):
         check_shape("f1", f1, tuple(f0.shape))
         B = f0.shape[0]
         c = self.features(torch.cat([f0, f1], dim=0))  # 2B×C×Z×Y×X
-        sizes = level_sizes(tuple(f0.shape[-3:]), self.levels + 1)  # grid, then levels 1..L
+        sizes = level_sizes(tuple(f0.shape[-3:]), self.finest + self.levels)  # grid, then coarser
         pyramid = [c] + [F.adaptive_avg_pool3d(c, s) for s in sizes[1:]]  # finest first
         flow = None
         per_level = []
-        for level in reversed(range(1, self.levels + 1)):
+        for level in reversed(range(self.finest, self.finest + self.levels)):
             c0, c1 = pyramid[level][:B], pyramid[level][B:]  # B×C×z×y×x each
             if flow is None:
                 up = c0.new_zeros(B, 3, *sizes[level])
@@ -102,6 +107,6 @@ class Flow3D(nn.Module):
                 up = upsample_flow(flow, sizes[level])  # B×3×z×y×x
                 warped = warp_flow(c1, up)
             cost = F.leaky_relu(cross_correlation_3d(c0, warped, self.radius, normalize=True), 0.1)
-            flow = up + self.decoders[level - 1](torch.cat([cost, c0, up], dim=1))  # B×3×z×y×x
+            flow = up + self.decoders[level - self.finest](torch.cat([cost, c0, up], dim=1))  # B×3×z×y×x
             per_level.append(flow)
         return {"flow": upsample_flow(flow, sizes[0]), "levels": per_level}

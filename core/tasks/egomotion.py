@@ -10,6 +10,10 @@ into a randomly perturbed map frame ref1' (ref1_T_ref1' = yaw ±`augment_deg`, p
 ±`augment_deg`/3, x and z ±`augment_m`, y ±`augment_m`/4), by re-unprojecting the views with
 cam_T_ref1' = cam_T_ref1 · ref1_T_ref1' (exact, no resampling); the target becomes
 ref0_T_ref1 · ref1_T_ref1'. Records with T = 1 pair a frame with its perturbed self.
+As the flow's synthetic motions, the perturbation is drawn per example in equal thirds: large (the
+ranges above), small (a sixth of them) and none (the recorded motion as it is). Why: trained on large
+perturbations only, the module never sees the small rotations of real driving (|yaw| ≲ 2° per step)
+and its error there stays at its large-motion error (measured: 3.2° vs the identity's 0.87°).
 """
 
 from __future__ import annotations
@@ -38,14 +42,23 @@ class EgomotionTaskConfig:
     augment: bool = True
     augment_deg: float = 6.0
     augment_m: float = 1.0
+    augment_mixture: bool = True    # equal thirds large / small / no perturbation (see module doc)
+    radius: tuple[int, int, int] = (2, 1, 2)  # cross-correlation search radius (x, y, z) voxels per scale
     rotation_weight: float = 10.0
     seed: int | None = None
 
 
+AUGMENT_SCALES = (1.0, 1.0 / 6.0, 0.0)  # large, small, none: drawn in equal thirds
+
+
 def random_perturbation(B: int, *, max_deg: float, max_m: float, generator: torch.Generator | None,
-                        dtype=torch.float32, device=None) -> torch.Tensor:
-    """Yaw-heavy random rigid transforms B×4×4 (see module doc for the ranges)."""
+                        dtype=torch.float32, device=None, mixture: bool = False) -> torch.Tensor:
+    """Yaw-heavy random rigid transforms B×4×4 (see module doc for the ranges). `mixture`: scale each
+    example's ranges by one of AUGMENT_SCALES, chosen uniformly."""
     u = torch.rand(B, 6, generator=generator, dtype=torch.float64) * 2.0 - 1.0  # B×6
+    if mixture:
+        pick = torch.randint(len(AUGMENT_SCALES), (B,), generator=generator)
+        u = u * torch.tensor(AUGMENT_SCALES, dtype=torch.float64)[pick, None]
     rad = math.radians(max_deg)
     R = se3.euler_to_matrix(u[:, 0] * rad / 3, u[:, 1] * rad, u[:, 2] * rad / 3)  # B×3×3
     t = u[:, 3:] * torch.tensor([max_m, max_m / 4, max_m], dtype=torch.float64)  # B×3
@@ -57,15 +70,17 @@ class EgomotionTask(nn.Module):
         super().__init__()
         self.cfg = config
         self.egomotion = EgomotionNet(grid=config.grid, width=config.width, feature_dim=config.feature_dim,
-                                      scales=config.scales or default_scales(config.grid))
+                                      scales=config.scales or default_scales(config.grid),
+                                      radius=tuple(config.radius))
         self._generator = torch.Generator().manual_seed(config.seed) if config.seed is not None else None
 
     @staticmethod
     def from_preset(preset: Preset, **overrides) -> "EgomotionTask":
         base = dict(grid=preset.grid, width=max(8, preset.encoder_width // 2), feature_dim=preset.feature_dim)
         base.update(overrides)
-        if base.get("scales") is not None:
-            base["scales"] = tuple(base["scales"])
+        for key in ("scales", "radius"):
+            if base.get(key) is not None:
+                base[key] = tuple(base[key])
         return EgomotionTask(config=EgomotionTaskConfig(**base))
 
     def exported_modules(self) -> dict[str, nn.Module]:
@@ -80,7 +95,8 @@ class EgomotionTask(nn.Module):
         target = ref0_T_ref1(batch, t0, t1)  # B×4×4
         if self.cfg.augment:
             P = random_perturbation(B, max_deg=self.cfg.augment_deg, max_m=self.cfg.augment_m,
-                                    generator=self._generator, dtype=target.dtype, device=target.device)
+                                    generator=self._generator, dtype=target.dtype, device=target.device,
+                                    mixture=self.cfg.augment_mixture)
             cam1 = cam1 @ P[:, None]  # B×V×4×4: cam_T_ref1' = cam_T_ref1 · ref1_T_ref1'
             target = target @ P
         with torch.no_grad():
