@@ -128,8 +128,10 @@ def run_train(task_name: str, args: argparse.Namespace, task_options: dict) -> i
     outcome = summary.outcome
     if outcome.start_step >= outcome.step:
         print(f"{task_name}: run already at step {outcome.step}; re-exported the bundle")
-    print(f"{task_name}: finished step {outcome.step} in {summary.seconds:.1f} s "
-          f"(loss {outcome.last_metrics.get('loss', float('nan')):.4g}); bundle: {summary.bundle_dir}")
+    loss = outcome.last_metrics.get("loss")
+    loss_text = f" (loss {loss:.4g})" if isinstance(loss, (int, float)) else ""
+    print(f"{task_name}: finished step {outcome.step} in {summary.seconds:.1f} s{loss_text}; "
+          f"bundle: {summary.bundle_dir}")
     return 0
 
 

@@ -23,7 +23,9 @@ from pathlib import Path
 import torch
 
 from core.errors import DataError, N3dmapError
-from services.training.checkpoints import LocalCheckpointStore, load_checkpoint, read_checkpoint_state
+from services.training.checkpoints import (
+    LocalCheckpointStore, check_same_run, load_checkpoint, read_checkpoint_state,
+)
 from services.training.config import TrainJobConfig
 from services.training.data import dataset_shard_paths
 from services.training.progress import MetricsTail
@@ -63,7 +65,12 @@ def run_training(config: TrainJobConfig, *, spec: TaskSpec = CORE_TASKS) -> RunS
     manifest = check_dataset(config)
     config.run_path.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    if config.workers == 0:
+    done = _finished_checkpoint(config)
+    if done is not None:  # rerun of a complete run: nothing to train, export again
+        checkpoint_dir, state = done
+        outcome = LoopOutcome(status="finished", step=state.step, start_step=state.step,
+                              last_metrics=state.metrics)
+    elif config.workers == 0:
         outcome, checkpoint_dir = _run_in_process(config, spec)
     else:
         outcome, checkpoint_dir = _run_on_ray(config)
@@ -76,6 +83,16 @@ def run_training(config: TrainJobConfig, *, spec: TaskSpec = CORE_TASKS) -> RunS
     bundle_dir = export_bundle(config, checkpoint_dir, outcome=outcome, manifest=manifest, spec=spec)
     return RunSummary(run_dir=config.run_path, bundle_dir=bundle_dir, checkpoint_dir=Path(checkpoint_dir),
                       outcome=outcome, seconds=time.monotonic() - started)
+
+
+def _finished_checkpoint(config: TrainJobConfig):
+    """(dir, state) of the run's newest checkpoint if it already reached config.steps, else None."""
+    latest = latest_checkpoint_dir(config)
+    if latest is None:
+        return None
+    state = read_checkpoint_state(latest)
+    check_same_run(state.config, config.identity(), latest)
+    return (latest, state) if state.step >= config.steps else None
 
 
 # ----------------------------------------------------------------------------- in-process
