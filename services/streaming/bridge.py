@@ -70,6 +70,9 @@ class FrameProcessor(Protocol):
     def process(self, camera: str, state: CameraState, frame: object) -> Outputs:
         """Run the models on `frame` given the camera's state (state.previous is the last frame)."""
 
+    # Optional: `prepare(camera, state)` runs on the worker when no frame waits (after a frame was
+    # processed and state.previous set), and `stats() -> dict` adds to the status JSON.
+
 
 def publisher_id_of(attachment: bytes | None) -> str | None:
     if not attachment:
@@ -170,8 +173,12 @@ class Bridge:
         query.reply(query.key_expr, json.dumps(self.status()))
 
     def status(self) -> dict:
-        return {"bridge_id": self.bridge_id, "cameras_pattern": self.cameras,
-                "uptime_s": round(self.clock() - self.started_at, 3), "cameras": self.accounting.snapshot()}
+        status = {"bridge_id": self.bridge_id, "cameras_pattern": self.cameras,
+                  "uptime_s": round(self.clock() - self.started_at, 3), "cameras": self.accounting.snapshot()}
+        stats = getattr(self.processor, "stats", None)
+        if stats is not None:
+            status["stages_ms"] = stats()  # per-stage model time percentiles (RuntimeProcessor)
+        return status
 
     # -- worker ------------------------------------------------------------------------------------
     def _next(self) -> tuple[str, Parked] | None:
@@ -199,6 +206,22 @@ class Bridge:
                 # Leaves `pending` only now that the frame sits in its final bucket, so the
                 # identity received = processed + dropped + malformed + pending holds at every instant.
                 self.accounting.update(camera, pending=-1)
+            self._prepare_while_idle(camera)
+
+    def _prepare_while_idle(self, camera: str) -> None:
+        """Let the processor get ahead on the camera's next step (e.g. encode the frame just
+        processed) — only when no frame is waiting, so it never delays one that is."""
+        prepare = getattr(self.processor, "prepare", None)
+        state = self._states.get(camera)
+        if prepare is None or state is None:
+            return
+        with self._cond:
+            if self._slots or self._stopping:
+                return
+        try:
+            prepare(camera, state)
+        except Exception:  # a failed preparation only costs the next step the same work again
+            log.exception("preparing the next step of camera %s failed", camera)
 
     def _handle(self, camera: str, parked: Parked) -> None:
         try:
