@@ -8,6 +8,9 @@ Losses:
   synthetic  — F0 moved by a random rigid motion (equal thirds large ±6°/±1 m, small ±1°/±0.1 m, zero;
                core.models.flow_synthetic); L1 between predicted and true flow at every level
                (true flow average-pooled to the level), finest level weight 1, each coarser half;
+               with probability `object_fraction` per step the motion instead moves one random block
+               of F0 (object-sized, core.models.flow_synthetic.sample_object_motions) and leaves the
+               rest static — still self-supervised, at the scale of the objects real pairs contain;
   warp       — mean over the OCCUPIED voxels of t (any view's depth point in the voxel; self-supervised)
                of Σ_c |F0 − warp_flow(F1, flow(F0, F1))| (3D feature constancy). Why occupied only: free
                space carries no motion evidence, and averaging over all voxels (tiny: ~15% occupied,
@@ -29,7 +32,7 @@ from core.geometry import se3
 from core.geometry.grid import GridConfig
 from core.geometry.resample import warp_flow, warp_rigid
 from core.models.flow3d import Flow3D, downsample_flow
-from core.models.flow_synthetic import rigid_flow, sample_motions
+from core.models.flow_synthetic import move_block, rigid_flow, sample_motions, sample_object_motions
 from core.models.egomotion_inputs import fused_input_volume
 from core.models.latent_map import Mapper
 from core.presets import Preset
@@ -47,6 +50,7 @@ class FlowTaskConfig:
     smooth_weight: float = 0.05
     finest: int = 1                 # Flow3D.finest: 1 = PWC's half-resolution last decoder, 0 = on the grid
     occupied_warp: bool = True      # warp loss over occupied voxels of t only (see module doc)
+    object_fraction: float = 0.5    # share of steps whose synthetic motion moves one block (see module doc)
     seed: int | None = None
 
 
@@ -116,10 +120,14 @@ class FlowTask(nn.Module):
         t = int(torch.randint(T - 1, (1,), generator=self._generator))
         f0, f1 = self.stabilised_maps(batch, t)
         g = self.cfg.grid
-        motion, _ = sample_motions(B, generator=self._generator, dtype=f0.dtype, device=f0.device)
-        moved = warp_rigid(f0, se3.invert(motion), g)  # B×F×Z×Y×X: f0 after the scene moved by `motion`
+        if float(torch.rand((), generator=self._generator)) < self.cfg.object_fraction:
+            motion, block = sample_object_motions(B, g, generator=self._generator, dtype=f0.dtype, device=f0.device)
+            moved, gt = move_block(f0, motion, block, g)  # only the block moved
+        else:
+            motion, _ = sample_motions(B, generator=self._generator, dtype=f0.dtype, device=f0.device)
+            moved = warp_rigid(f0, se3.invert(motion), g)  # B×F×Z×Y×X: f0 after the scene moved by `motion`
+            gt = rigid_flow(motion, g)
         synth = self.flow(f0, moved)
-        gt = rigid_flow(motion, g)
         loss_synth = multilevel_l1(synth["levels"], gt)
         real = self.flow(f0, f1)
         residual = (f0 - warp_flow(f1, real["flow"])).abs().sum(1, keepdim=True)  # B×1×Z×Y×X
