@@ -112,6 +112,7 @@ def _detection_section(report: Report, det: dict, config: BenchConfig, budgets: 
         ax.set_title(f"3D IoU {iou}")
         ax.set_ylim(bottom=0)
     axes[0].legend(fontsize=7)
+    fig.tight_layout()
     report.figure("detection_map_vs_labels", fig,
                   "Detection mAP vs number of labelled records per pretraining (dashed: frozen features)")
 
