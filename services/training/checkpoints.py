@@ -141,6 +141,23 @@ class LocalCheckpointStore:
         return final
 
 
+def newest_complete_checkpoint(root: str | Path) -> Path | None:
+    """The newest checkpoint under `root` whose three files are all present and whose weights file
+    opens (a copy cut short by a dying worker is passed over), or None."""
+    from safetensors import safe_open
+
+    for candidate in reversed(LocalCheckpointStore(root, keep=1).list()):
+        if not all((candidate / name).is_file() for name in (TASK_FILE, OPTIMIZER_FILE, STATE_FILE)):
+            continue
+        try:
+            with safe_open(str(candidate / TASK_FILE), framework="pt"):
+                pass
+        except Exception:  # safetensors raises its own types for truncated files
+            continue
+        return candidate
+    return None
+
+
 def _module_device(module: torch.nn.Module) -> torch.device:
     for p in module.parameters():
         return p.device

@@ -115,7 +115,12 @@ class RaySession:
 
         checkpoint = ray.train.get_checkpoint()
         if checkpoint is None:
-            yield None
+            # Ray Train registers a reported checkpoint asynchronously: a worker group that dies just
+            # after `report` can be restarted without it although it is complete on storage. Resume
+            # from the newest complete checkpoint there rather than from scratch.
+            from services.training.checkpoints import newest_complete_checkpoint
+
+            yield newest_complete_checkpoint(self.config.run_path / self.config.ray_storage_name)
         else:
             with checkpoint.as_directory() as directory:
                 yield Path(directory)

@@ -23,13 +23,6 @@ def dataset(tmp_path, make_record):
     return out
 
 
-@pytest.fixture(autouse=True)
-def only_the_data_area(monkeypatch):
-    # The parser imports only `services.cli.data`: the other areas' start-up imports (torch, Ray, ...)
-    # are not what these tests are about and cost seconds on a loaded CI machine.
-    monkeypatch.setattr(cli_main, "AREAS", ("data",))
-
-
 def run(capsys, *args):
     code = cli_main.main(["data", *map(str, args)])
     out, err = capsys.readouterr()

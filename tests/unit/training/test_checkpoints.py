@@ -4,8 +4,8 @@ import pytest
 import torch
 
 from services.training.checkpoints import (
-    CheckpointError, LocalCheckpointStore, check_same_run, load_checkpoint, read_checkpoint_state,
-    save_checkpoint,
+    CheckpointError, LocalCheckpointStore, check_same_run, checkpoint_dir_name, load_checkpoint, newest_complete_checkpoint,
+    read_checkpoint_state, save_checkpoint,
 )
 from tests.unit.training.toy import ToyTask
 
@@ -80,3 +80,17 @@ def test_check_same_run_names_the_difference(tmp_path):
     other = dict(identity, task_options={"objective": "regression"})
     with pytest.raises(CheckpointError, match="task_options"):
         check_same_run(other, identity, tmp_path)
+
+
+def test_newest_complete_checkpoint_passes_over_a_copy_cut_short(tmp_path):
+    # What a Ray worker group restarted before the controller registered its last report falls back to.
+    task, opt = _trained_task_and_optimizer()
+    for step in (2, 4, 6):
+        save_checkpoint(tmp_path / checkpoint_dir_name(step), task=task, optimizer=opt, step=step, config={},
+                        metrics={})
+    weights = tmp_path / checkpoint_dir_name(6) / "task.safetensors"
+    weights.write_bytes(weights.read_bytes()[:10])          # truncated weights
+    (tmp_path / checkpoint_dir_name(4) / "optimizer.pt").unlink()  # a file never copied
+    found = newest_complete_checkpoint(tmp_path)
+    assert found is not None and read_checkpoint_state(found).step == 2
+    assert newest_complete_checkpoint(tmp_path / "absent") is None
