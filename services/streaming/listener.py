@@ -41,14 +41,17 @@ def format_detections(d: dict) -> str:
 
 
 def listen(*, zenoh_options: ZenohOptions, camera_id: str = "*", max_messages: int | None = None,
-           timeout_s: float | None = None, emit: Callable[[dict], None]) -> int:
+           timeout_s: float | None = None, emit: Callable[[dict], None],
+           on_ready: Callable[[str], None] | None = None) -> int:
     """Receive detections for `camera_id` (a key-expression chunk, `*` = every camera) and call
-    `emit` with each as a dict; stop after `max_messages` or `timeout_s` of silence. Returns the count.
+    `emit` with each as a dict (`on_ready(key)` once subscribed); stop after `max_messages` or `timeout_s` of silence. Returns the count.
     Undecodable samples are reported through `emit` as {"error": ...} rather than ending the loop."""
     session = open_session(zenoh_options)
     count = 0
     try:
         sub = session.declare_subscriber(keys.moving_objects(camera_id), zenoh.handlers.FifoChannel(256))
+        if on_ready is not None:
+            on_ready(keys.moving_objects(camera_id))
         try:
             last = time.monotonic()
             while max_messages is None or count < max_messages:
