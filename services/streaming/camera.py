@@ -2,7 +2,8 @@
 
 Each sample carries the attachment `pub=<publisher id>` (a fresh id per process), which lets the
 bridge tell a restarted camera (sequence back at 0) from out-of-order frames. Frames are paced at
-`rate_hz` against a monotonic clock (no drift from processing time); `CongestionControl.BLOCK`
+`rate_hz` against a monotonic clock (no drift from processing time; after a stall of the source,
+such as rendering the next synthetic episode, the schedule restarts instead of bursting); `CongestionControl.BLOCK`
 means zenoh never silently drops a frame on the way out (ECOSYSTEM.md).
 """
 
@@ -69,6 +70,10 @@ def publish_frames(frames: Iterable[dict], *, camera_id: str, zenoh_options: Zen
             delay = next_at - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
+            elif delay < -period:
+                # The source stalled (a synthetic episode being rendered): resume at the rate from
+                # now instead of bursting out the frames "missed" meanwhile, as a real camera would.
+                next_at = time.monotonic()
             payload = encode_frame(frame, camera_id=camera_id, sequence=sent, timestamp=time.time(),
                                    encoding=encoding)
             pub.put(payload, attachment=attachment)

@@ -1,0 +1,184 @@
+"""Benchmark of the zenoh stream bridge: sustained frames/s and camera-publish → detection-received
+latency, p50/p99, per preset, with the bridge, the simulated camera and the listener as three
+separate `n3dmap stream` processes on loopback (peer mode).
+
+    python tests/benchmarks/bench_stream.py                       # tiny and small, 10 Hz, 60 frames
+    python tests/benchmarks/bench_stream.py --presets tiny --rate 10 --frames 100 --threads 1
+    python tests/benchmarks/bench_stream.py --bundle-tiny runs/flow/bundle
+
+Without --bundle-<preset> each preset gets fresh modules (mapper, flow with random non-zero last
+layers, occupancy, egomotion): the compute per frame does not depend on the weights, and a
+non-zero flow exercises the box stage. Latency is measured by the listener (its receive time minus
+the camera's source timestamp; one host, one clock) over the frames the bridge ran the models on
+(a camera's first frame has no pair and is left out). Figures printed: frames sent / processed /
+dropped, sustained processed frames/s (first to last detection), latency p50/p99, the bridge's
+model time per stage (its status), the bridge's CPU seconds per processed frame, and the load
+average of the host before and after (the dev machine is shared: read the figures against it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start(args: list[str], log_dir: Path, name: str) -> tuple[subprocess.Popen, Path, Path]:
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
+    out, err = log_dir / f"{name}.out", log_dir / f"{name}.err"
+    with open(out, "wb") as o, open(err, "wb") as e:
+        proc = subprocess.Popen([sys.executable, "-m", "services.cli.main", "stream", *args], cwd=ROOT, env=env,
+                                stdout=o, stderr=e)
+    return proc, out, err
+
+
+def stop(proc: subprocess.Popen, timeout_s: float = 60.0) -> int:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
+def wait_for(predicate, timeout_s: float, what: str):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.2)
+    raise TimeoutError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+def cpu_seconds(pid: int) -> float:
+    """utime + stime of a live process (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def fresh_bundle(preset_name: str, out: Path) -> Path:
+    import torch
+
+    from core.bundle import save_bundle
+    from core.presets import get_preset
+    from core.tasks.egomotion import EgomotionTask
+    from core.tasks.flow import FlowTask
+    from core.tasks.occupancy import OccupancyTask
+
+    torch.manual_seed(0)
+    preset = get_preset(preset_name)
+    flow_task = FlowTask.from_preset(preset)
+    occupancy = OccupancyTask.from_preset(preset).occupancy
+    with torch.no_grad():
+        for p in flow_task.flow.parameters():
+            if p.dim() > 1 and not p.any():
+                p.normal_(std=0.3)
+        occupancy.conv.weight.normal_(std=2.0)
+        occupancy.conv.bias.fill_(1.0)
+    modules = {"mapper": flow_task.mapper, "flow": flow_task.flow, "occupancy": occupancy,
+               "egomotion": EgomotionTask.from_preset(preset).egomotion}
+    save_bundle(out, modules=modules, preset=preset, provenance={"bench": "stream"}, metrics={})
+    return out
+
+
+def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    load_before = os.getloadavg()
+    bridge, bridge_out, bridge_err = start(
+        ["bridge", "--bundle", str(bundle), "--listen", endpoint, "--bridge-id", f"bench-{preset}",
+         "--threads", str(args.threads), "--device", "cpu", "--status-every", "0"], work, f"bridge_{preset}")
+    listener = camera = None
+    try:
+        wait_for(lambda: "ready" in bridge_err.read_text() or bridge.poll() is not None, 300, "the bridge")
+        if bridge.poll() is not None:
+            raise RuntimeError(bridge_err.read_text()[-3000:])
+        listener, listen_out, listen_err = start(["listen", "--camera-id", "bench", "--json", "--connect", endpoint],
+                                                 work, f"listen_{preset}")
+        wait_for(lambda: "subscribed" in listen_err.read_text(), 120, "the listener")
+        time.sleep(1.0)
+        cpu_start = cpu_seconds(bridge.pid)
+        camera, _, camera_err = start(
+            ["camera", "--camera-id", "bench", "--synthetic", "--preset", preset, "--seed", "0",
+             "--episode-frames", str(args.frames), "--rate", str(args.rate), "--frames", str(args.frames),
+             "--connect", endpoint], work, f"camera_{preset}")
+        camera.wait(args.frames / args.rate + 600)
+        time.sleep(args.drain_s)  # the bridge finishes the frame in hand
+        cpu_used = cpu_seconds(bridge.pid) - cpu_start
+    finally:
+        for p in (camera, listener):
+            if p is not None:
+                stop(p)
+        stop(bridge)
+    load_after = os.getloadavg()
+    final = json.loads(bridge_out.read_text().strip().splitlines()[-1])["final_status"]
+    counts = final["cameras"].get("bench", {})
+    lines = [json.loads(x) for x in listen_out.read_text().splitlines() if x.strip().startswith("{")]
+    modelled = [d for d in lines if d["sequence"] != lines[0]["sequence"]] if lines else []
+    e2e = np.array([d["end_to_end_ms"] for d in modelled])
+    received_at = np.array([d["source_timestamp"] + d["end_to_end_ms"] / 1000.0 for d in lines])
+    span = float(received_at[-1] - received_at[0]) if len(lines) > 1 else float("nan")
+    return {
+        "preset": preset, "rate_hz": args.rate, "threads": args.threads,
+        "sent": counts.get("received"), "processed": counts.get("processed"), "dropped": counts.get("dropped"),
+        "malformed": counts.get("malformed"), "pending": counts.get("pending"),
+        "identity_holds": counts.get("received") == (counts.get("processed", 0) + counts.get("dropped", 0)
+                                                      + counts.get("malformed", 0) + counts.get("pending", 0)),
+        "detections_received": len(lines),
+        "sustained_fps": round((len(lines) - 1) / span, 2) if len(lines) > 1 and span > 0 else None,
+        "e2e_ms_p50": round(float(np.percentile(e2e, 50)), 1) if e2e.size else None,
+        "e2e_ms_p99": round(float(np.percentile(e2e, 99)), 1) if e2e.size else None,
+        "bridge_cpu_s_per_processed": round(cpu_used / max(1, counts.get("processed", 1)), 3),
+        "bridge_cpu_s": round(cpu_used, 2),
+        "stages_ms": {k: v["p50"] for k, v in final.get("stages_ms", {}).items()},
+        "step_ms_p99": final.get("stages_ms", {}).get("step_total", {}).get("p99"),
+        "load_before": [round(x, 2) for x in load_before], "load_after": [round(x, 2) for x in load_after],
+    }
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--presets", default="tiny,small")
+    parser.add_argument("--rate", type=float, default=10.0, help="camera frames per second")
+    parser.add_argument("--frames", type=int, default=60, help="frames the camera publishes per preset")
+    parser.add_argument("--threads", type=int, default=1, help="the bridge's torch threads")
+    parser.add_argument("--drain-s", type=float, default=5.0, help="wait after the last frame before stopping")
+    for name in ("tiny", "small", "paper"):
+        parser.add_argument(f"--bundle-{name}", default=None, help=f"bundle for the {name} preset (default: fresh)")
+    args = parser.parse_args(argv)
+    print(f"host: {os.cpu_count()} CPUs, load average {os.getloadavg()}", flush=True)
+    with tempfile.TemporaryDirectory(prefix="bench_stream_") as tmp:
+        work = Path(tmp)
+        for preset in args.presets.split(","):
+            bundle = getattr(args, f"bundle_{preset}") or fresh_bundle(preset, work / f"bundle_{preset}")
+            result = run_preset(preset, Path(bundle), args, work)
+            print(json.dumps(result), flush=True)
+            print(f"{preset}: camera at {args.rate:g} Hz, {result['processed']}/{result['sent']} frames processed "
+                  f"({result['dropped']} dropped), sustained {result['sustained_fps']} fps, end-to-end p50 "
+                  f"{result['e2e_ms_p50']} ms / p99 {result['e2e_ms_p99']} ms; bridge CPU "
+                  f"{result['bridge_cpu_s_per_processed']} s per processed frame; load "
+                  f"{result['load_before']} -> {result['load_after']}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
