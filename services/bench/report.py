@@ -184,7 +184,8 @@ def _egomotion_section(report: Report, ego: dict) -> None:
 def _claims_section(report: Report, claims: list[dict]) -> None:
     report.heading("Claims")
     report.text("Each claim of the paper, the fixed criterion it is checked with, our numbers, and the verdict "
-                "(holds / does not hold / undetermined when a number is missing).")
+                "(holds / does not hold / undetermined when a number is missing). \"A > B\" in a criterion means "
+                "by more than 1 % (relative) of the means: closer values are a tie, which does not hold.")
     verdict = {True: "holds", False: "does not hold", None: "undetermined"}
     for c in claims:
         report.text(f"- **{c['id']}: {verdict[c['holds']]}.** {c['claim']} Criterion: {c['criterion']}. "
