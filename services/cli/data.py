@@ -2,7 +2,7 @@
 
     n3dmap data generate --out DIR --preset tiny --episodes 64 --seed 0 [--views V] [--frames T]
                          [--split train|val] [--moving-ego on|off|mixed] [--sparse-depth]
-                         [--noise SIGMA] [--shard-mb MB] [--overwrite]
+                         [--noise SIGMA] [--shard-mb MB] [--overwrite] [--jobs N]
     n3dmap data info DIR [--verify] [--json]
     n3dmap data preview DIR --out FILE.png [--index I]
     n3dmap data import authors-npz|kitti|tum SRC --out DIR [...]
@@ -10,7 +10,8 @@
 Seeds: record i of `generate --seed S` is `core.synthetic.generate_record(preset, seed=S*100003 + i)`,
 so a record can be rebuilt alone and datasets made with different S never share a record for
 S*100003 + i distinct (fewer than 100003 records per dataset). `--moving-ego mixed` moves the ego in
-the odd-indexed records.
+the odd-indexed records. `--jobs N` renders in N processes of one torch thread each (render_pool.py);
+the records and their bytes do not depend on N.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 # Errors are raised as core.errors types (not services.cli.main.CliError): under
 # `python -m services.cli.main` that module is __main__, and its CliError would be a different class.
@@ -45,7 +46,7 @@ def register(subparsers) -> None:
     g.add_argument("--out", required=True, type=Path, help="dataset directory to create")
     g.add_argument("--preset", required=True, choices=["tiny", "small", "paper"])
     g.add_argument("--episodes", required=True, type=_positive_int, help="number of records")
-    g.add_argument("--seed", type=int, default=0, help="dataset seed S (record i uses S*100003+i)")
+    g.add_argument("--seed", type=_non_negative_int, default=0, help="dataset seed S (record i uses S*100003+i)")
     g.add_argument("--views", type=_positive_int, default=None, help="views per record (default: preset)")
     g.add_argument("--frames", type=_positive_int, default=None, help="time steps per record (default: preset)")
     g.add_argument("--split", choices=["train", "val"], default="train")
@@ -55,6 +56,9 @@ def register(subparsers) -> None:
     g.add_argument("--noise", type=_non_negative_float, default=0.0, help="depth noise sigma, metres")
     g.add_argument("--shard-mb", type=_positive_float, default=256.0, help="target shard size in MB")
     g.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
+    g.add_argument("--jobs", type=_positive_int, default=None,
+                   help="render processes, one torch thread each (default: min(CPUs, 4), or 1 for a "
+                        "job of a few seconds; 1: in this process); the output is the same for any N")
     g.set_defaults(func=cmd_generate)
 
     i = sub.add_parser("info", help="print a dataset's manifest summary (and verify it)")
@@ -115,6 +119,13 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _non_negative_int(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
 def _positive_float(text: str) -> float:
     value = float(text)
     if not value > 0:
@@ -163,7 +174,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
     check_output_dir(args.out, overwrite=args.overwrite)   # before the (slow) generator import
     try:
-        from core.synthetic import generate_record
+        from core.synthetic import generate_record  # noqa: F401 - only checks that it is there
     except ImportError:
         raise N3dmapError("the synthetic generator (core.synthetic.generate_record) is not available "
                        "in this build") from None
@@ -172,12 +183,17 @@ def cmd_generate(args: argparse.Namespace) -> int:
     if args.episodes >= SEED_STRIDE:
         raise DataError(f"--episodes must be below {SEED_STRIDE} (record seeds would overlap the next --seed)")
 
-    def records() -> Iterator[dict]:
-        for i in range(args.episodes):
-            moving = {"on": True, "off": False, "mixed": i % 2 == 1}[args.moving_ego]
-            yield generate_record(preset, seed=episode_seed(args.seed, i), num_views=args.views,
-                                  num_frames=args.frames, moving_ego=moving,
-                                  sparse_depth=args.sparse_depth, noise=args.noise)
+    from services.cli.render_pool import RecordSpec, default_jobs, render_records
+
+    specs = [RecordSpec(preset=preset.name, seed=episode_seed(args.seed, i), num_views=args.views,
+                        num_frames=args.frames,
+                        moving_ego={"on": True, "off": False, "mixed": i % 2 == 1}[args.moving_ego],
+                        sparse_depth=args.sparse_depth, noise=args.noise)
+             for i in range(args.episodes)]
+    T, V = args.frames or preset.num_frames, args.views or preset.num_views
+    jobs = args.jobs or default_jobs(records=args.episodes,
+                                     pixels_per_record=T * V * preset.camera.H * preset.camera.W)
+    jobs = min(jobs, args.episodes)
 
     generator = {
         "source": "synthetic", "episodes": args.episodes,
@@ -185,11 +201,15 @@ def cmd_generate(args: argparse.Namespace) -> int:
         "moving_ego": args.moving_ego, "sparse_depth": args.sparse_depth, "noise": args.noise,
         "record_seed": f"seed*{SEED_STRIDE} + index",
     }
-    with _Progress(args.episodes, f"generate {args.preset}") as progress:
-        manifest = write_dataset(args.out, records(), split=args.split, preset_name=preset.name,
-                                 grid=preset.grid.to_dict(), generator=generator, seed=args.seed,
-                                 shard_bytes=_shard_bytes(args.shard_mb), overwrite=args.overwrite,
-                                 on_record=progress)
+    records = render_records(specs, jobs=jobs)
+    try:
+        with _Progress(args.episodes, f"generate {args.preset}") as progress:
+            manifest = write_dataset(args.out, records, split=args.split, preset_name=preset.name,
+                                     grid=preset.grid.to_dict(), generator=generator, seed=args.seed,
+                                     shard_bytes=_shard_bytes(args.shard_mb), overwrite=args.overwrite,
+                                     on_record=progress)
+    finally:
+        records.close()  # stops the render workers now, whether write_dataset finished or failed
     _print_written(args.out, manifest)
     return 0
 

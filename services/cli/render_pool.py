@@ -1,0 +1,184 @@
+"""Render synthetic records in worker processes, yielding them in record order.
+
+Used by `n3dmap data generate --jobs N` and by tests/benchmarks/bench_render.py --processes N.
+
+Why processes of one torch thread each and not torch's intra-op threads: a record is an independent
+unit of work, so N processes scale with no synchronisation, whereas every parallel torch op is an
+OpenMP region whose barrier waits for all of its threads. On a machine busier than its core count
+(shared CI, other jobs) a descheduled OpenMP thread stalls each region for a scheduler slice: measured
+on this project's 2-core box at load ~4, `a * b + a` on 100k floats took 89 µs with 1 thread and
+31 ms with 2, and a paper-preset record went from 0.16 to 1.9 CPU-seconds.
+
+Workers use the spawn start method (no fork of a parent that may hold torch/OpenMP state or threads)
+and ignore SIGINT: Ctrl-C is the parent's to handle, which stops handing out work, terminates the
+workers and joins them, leaving no process behind. At most `window` records are
+submitted ahead of the one being consumed, so memory stays bounded however slow the consumer is.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import signal
+import threading
+from collections import deque
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Iterable, Iterator
+
+from core.errors import N3dmapError
+
+
+@dataclass(frozen=True, kw_only=True)
+class RecordSpec:
+    """Everything that determines one synthetic record (picklable, sent to workers)."""
+
+    preset: str
+    seed: int
+    num_views: int | None = None
+    num_frames: int | None = None
+    moving_ego: bool = False
+    sparse_depth: bool = False
+    noise: float = 0.0
+
+
+def render_record(spec: RecordSpec) -> dict:
+    """The record of `spec` (core.synthetic.generate_record on the CPU); same bytes in any process."""
+    from core.presets import get_preset
+    from core.synthetic import generate_record
+
+    return generate_record(get_preset(spec.preset), seed=spec.seed, num_views=spec.num_views,
+                           num_frames=spec.num_frames, moving_ego=spec.moving_ego,
+                           sparse_depth=spec.sparse_depth, noise=spec.noise)
+
+
+# Below this many rendered pixels a job runs in-process: a worker's start-up (importing torch, ~2 CPU-s)
+# would cost more than it saves. 20 M pixels ≈ 5 s of one core here (≈ 34 paper-preset records of
+# 2×6 views at 128×384, ≈ 270 tiny ones).
+POOL_MIN_PIXELS = 20_000_000
+
+
+def usable_cpus() -> int:
+    import os
+
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
+
+
+def default_jobs(*, records: int, pixels_per_record: int) -> int:
+    """min(usable CPUs, 4, records) render processes, or 1 when the whole job is too small to repay
+    the workers' start-up (POOL_MIN_PIXELS); more processes than cores only add memory and contention."""
+    if records * pixels_per_record < POOL_MIN_PIXELS:
+        return 1
+    return max(1, min(usable_cpus(), 4, records))
+
+
+def _init_worker() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _describe(index: int, spec: RecordSpec, e: BaseException) -> str:
+    text = " ".join(str(e).split()) or type(e).__name__
+    return f"record {index} (seed {spec.seed}): {type(e).__name__}: {text}"
+
+
+@contextmanager
+def _single_torch_thread() -> Iterator[None]:
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+@contextmanager
+def _sigint_ignored_while_spawning() -> Iterator[None]:
+    """Spawned children inherit an ignored SIGINT through exec, so a Ctrl-C during their start-up
+    (before `_init_worker` runs) cannot print a KeyboardInterrupt traceback from a child."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def render_records(specs: Iterable[RecordSpec], *, jobs: int, window: int | None = None) -> Iterator[dict]:
+    """Yield `render_record(spec)` for each spec, in order.
+
+    jobs: worker processes (1: render in this process, with one torch thread while doing so).
+    window: records submitted ahead of the consumer (default 2·jobs; memory ≈ window records).
+    A failure while rendering record i raises N3dmapError naming it (a record's own N3dmapError is
+    re-raised as is); a worker that dies (killed, out of memory) raises N3dmapError too. Closing the
+    generator early (an error downstream, Ctrl-C) cancels the queued records and terminates and joins
+    the workers, so none outlives it.
+    """
+    if jobs < 1:
+        raise ValueError(f"jobs must be >= 1, got {jobs}")
+    if jobs == 1:
+        with _single_torch_thread():
+            for i, spec in enumerate(specs):
+                try:
+                    record = render_record(spec)
+                except N3dmapError:
+                    raise
+                except Exception as e:  # noqa: BLE001 - named per record, as in the pool path
+                    raise N3dmapError(f"rendering failed: {_describe(i, spec, e)}") from e
+                yield record
+        return
+
+    window = 2 * jobs if window is None else max(1, window)
+    executor = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_init_worker)
+    pending: deque[tuple[int, RecordSpec, Future]] = deque()
+    todo = iter(enumerate(specs))
+    try:
+        with _sigint_ignored_while_spawning():  # the first `jobs` submits start the workers
+            for i, spec in todo:
+                pending.append((i, spec, executor.submit(render_record, spec)))
+                if len(pending) >= window:
+                    break
+        while pending:
+            i, spec, future = pending.popleft()
+            try:
+                record = future.result()
+            except BrokenProcessPool:
+                raise N3dmapError(f"a render worker process died while rendering record {i} "
+                                  f"(seed {spec.seed}); killed, or out of memory? (try fewer --jobs)") from None
+            except N3dmapError:
+                raise
+            except Exception as e:  # noqa: BLE001 - any failure in a worker becomes a one-line error
+                raise N3dmapError(f"rendering failed in a worker: {_describe(i, spec, e)}") from None
+            nxt = next(todo, None)
+            if nxt is not None:
+                pending.append((nxt[0], nxt[1], executor.submit(render_record, nxt[1])))
+            yield record
+    finally:
+        for _, _, future in pending:
+            future.cancel()
+        if pending:  # stopped early (error downstream, Ctrl-C): records in flight are not wanted
+            _stop_workers(executor)
+        executor.shutdown(wait=True, cancel_futures=True)
+
+
+def _stop_workers(executor: ProcessPoolExecutor) -> None:
+    """Terminate the workers now instead of waiting for their records in flight (seconds each at
+    the paper preset with many views). Python 3.14 has `terminate_workers`; before it, the process
+    handles are only reachable through the executor's `_processes`."""
+    terminate = getattr(executor, "terminate_workers", None)
+    if terminate is not None:
+        terminate()
+        return
+    for process in list((getattr(executor, "_processes", None) or {}).values()):
+        process.terminate()
