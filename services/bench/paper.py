@@ -205,6 +205,6 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
 
 def _jsonable(value):
     """Tensors and numpy values -> plain JSON; NaN/inf -> None."""
-    from services.reports.writer import _clean
+    from services.reports.writer import json_safe
 
-    return _clean(value)
+    return json_safe(value)

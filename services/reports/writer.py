@@ -20,14 +20,14 @@ from pathlib import Path
 from typing import Any
 
 
-def _clean(value: Any) -> Any:
+def json_safe(value: Any) -> Any:
     """JSON-safe copy: NaN/inf -> None, numpy scalars/arrays -> Python, tuples -> lists."""
     if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
+        return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
+        return [json_safe(v) for v in value]
     if hasattr(value, "tolist"):
-        return _clean(value.tolist())
+        return json_safe(value.tolist())
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     return value
@@ -92,5 +92,5 @@ class Report:
         (out / "report.md").write_text("\n".join(head) + "\n\n" + "\n\n".join(self._blocks) + "\n")
         payload = {"kind": self.kind, "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
                    "bundle": self.bundle, "data": self.data, "settings": self.settings, "metrics": self.metrics}
-        (out / "metrics.json").write_text(json.dumps(_clean(payload), indent=2, sort_keys=False) + "\n")
+        (out / "metrics.json").write_text(json.dumps(json_safe(payload), indent=2, sort_keys=False) + "\n")
         return out
