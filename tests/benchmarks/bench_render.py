@@ -1,16 +1,28 @@
 """Benchmark the synthetic world: rendered view-frames per second (one view at one time step = one
-view-frame) for the paper preset camera (128×384) and the tiny preset (64×192), on CPU and on CUDA
-when available. Prints figures; not a test.
+view-frame) for the paper preset camera (128×384) and the tiny preset (64×192). Prints figures; not a test.
 
-    python tests/benchmarks/bench_render.py [--threads 2] [--repeats 5]
+    python tests/benchmarks/bench_render.py [--threads 1 2] [--processes 2] [--repeats 5]
+                                            [--omp-wait-policy passive] [--cuda]
 
-Wall-clock figures on a shared machine are depressed by other jobs; the CPU-time figure (process CPU
-seconds / threads) estimates what an idle machine with that many cores would give.
+Rows:
+- `1 proc × k thr`: generate_record in this process with k torch intra-op threads (median of --repeats
+  records after a warm-up): wall rate, and view-frames per CPU-second of the process.
+- `N proc × 1 thr`: N worker processes of one thread each rendering records in order, exactly as
+  `n3dmap data generate --jobs N` does (services/cli/render_pool.py): aggregate wall rate over the
+  records after each worker's first (start-up and warm-up excluded); view-frames per CPU-second of
+  the workers (read from /proc); and N × that, the rate N idle cores would give (the processes share
+  nothing but memory bandwidth, so they scale; threads do not, so their rows have no such estimate).
+  `--jobs 1` is the in-process path of `data generate --jobs 1` (one torch thread).
+
+Wall figures on a shared machine are depressed by other jobs: the CPU count and the load average
+(before and after) are printed with them. `--omp-wait-policy` sets OMP_WAIT_POLICY before torch loads
+(with k > 1 threads on a busy machine the default spinning OpenMP barrier collapses throughput).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import time
@@ -18,51 +30,115 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-import numpy as np  # noqa: E402
-import torch  # noqa: E402
 
-from core.presets import PAPER, TINY  # noqa: E402
-from core.synthetic import default_world_config, generate_record  # noqa: E402
-from core.synthetic.scene import sample_scene  # noqa: E402
+def _parse() -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2],
+                        help="torch threads of the single-process rows (default: 1 2)")
+    parser.add_argument("--processes", type=int, nargs="*", default=[2],
+                        help="render-process counts of the pooled rows (default: 2; none: skip)")
+    parser.add_argument("--repeats", type=int, default=5, help="records per single-process row")
+    parser.add_argument("--pool-records", type=int, default=12,
+                        help="timed records per process in the pooled rows (default: 12)")
+    parser.add_argument("--presets", nargs="+", default=["paper", "tiny"])
+    parser.add_argument("--omp-wait-policy", choices=["passive", "active"], default=None,
+                        help="set OMP_WAIT_POLICY for this process (before torch is imported)")
+    parser.add_argument("--cuda", action="store_true", help="also time rendering on CUDA when available")
+    return parser.parse_args()
 
 
-def _time(fn, repeats: int, sync) -> tuple[float, float]:
-    """(median wall seconds, median process-CPU seconds) of fn() over `repeats` runs after one warm-up."""
-    fn()
+def _load() -> str:
+    return "/".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def _single_process(preset, threads: int, repeats: int, device: str) -> tuple[float, float]:
+    """(wall view-frames/s, view-frames per CPU-second) of generate_record in this process (medians)."""
+    import torch
+
+    from core.synthetic import generate_record
+
+    torch.set_num_threads(threads)
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+    vf = preset.num_frames * preset.num_views
+    generate_record(preset, seed=10_000, moving_ego=True, device=device)  # warm-up
     sync()
     walls, cpus = [], []
-    for _ in range(repeats):
+    for seed in range(repeats):
         w0, c0 = time.perf_counter(), time.process_time()
-        fn()
+        generate_record(preset, seed=seed, moving_ego=True, device=device)
         sync()
         walls.append(time.perf_counter() - w0)
         cpus.append(time.process_time() - c0)
-    return statistics.median(walls), statistics.median(cpus)
+    return vf / statistics.median(walls), vf / statistics.median(cpus)
+
+
+def _children_cpu_seconds() -> float:
+    """User + system CPU seconds of this process's live children (the render workers), from /proc."""
+    me, ticks, total = os.getpid(), os.sysconf("SC_CLK_TCK"), 0
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            fields = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == me:
+            total += int(fields[11]) + int(fields[12])  # utime, stime (fields 14, 15 of stat)
+    return total / ticks
+
+
+def _pooled(preset, processes: int, records_per_process: int) -> tuple[float, float]:
+    """(aggregate wall view-frames/s, view-frames per CPU-second of the workers) with `processes`
+    render workers rendering in order, as `data generate --jobs` does."""
+    from services.cli.render_pool import RecordSpec, render_records
+
+    total = processes * (records_per_process + 1)
+    specs = [RecordSpec(preset=preset.name, seed=i, moving_ego=True) for i in range(total)]
+    arrivals, cpu_marks = [], {}
+    # jobs=1 renders in this process (as `--jobs 1` does): its own CPU time then, not its children's.
+    cpu_seconds = _children_cpu_seconds if processes > 1 else time.process_time
+    for i, _ in enumerate(render_records(specs, jobs=processes)):
+        arrivals.append(time.perf_counter())
+        # The clock starts at the arrival of record `processes - 1`: by then every worker has started
+        # and rendered once, so what follows is the steady state.
+        if i in (processes - 1, total - 1):
+            cpu_marks[i] = cpu_seconds()
+    timed_vf = (total - processes) * preset.num_frames * preset.num_views
+    wall = arrivals[-1] - arrivals[processes - 1]
+    cpu = cpu_marks[total - 1] - cpu_marks[processes - 1]
+    return timed_vf / wall, timed_vf / cpu if cpu > 0 else float("nan")
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=5)
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-    print(f"torch {torch.__version__}, {args.threads} CPU threads, repeats {args.repeats} (median)")
-    print(f"{'preset':7} {'H×W':>8} {'T×V':>4} {'device':6} {'record s':>9} {'view-frames/s':>14} "
-          f"{'CPU-time view-frames/s':>23} {'scene sampling s':>17}")
-    for preset in (PAPER, TINY):
-        T, V = preset.num_frames, preset.num_views
-        cfg = default_world_config(preset)
-        scene_wall, _ = _time(lambda: sample_scene(np.random.default_rng(1), T=T, V=V, cfg=cfg, grid=preset.grid,
-                                                   ground_y=preset.ground_y, moving_ego=True), args.repeats, lambda: None)
-        for device in devices:
-            sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
-            seeds = iter(range(10_000))
-            wall, cpu = _time(lambda: generate_record(preset, seed=next(seeds), moving_ego=True, device=device),
-                              args.repeats, sync)
-            cpu_rate = (T * V) / (cpu / args.threads) if device == "cpu" else float("nan")
-            print(f"{preset.name:7} {preset.camera.H:>3}×{preset.camera.W:<4} {T}×{V:<2} {device:6} {wall:9.3f} "
-                  f"{T * V / wall:14.1f} {cpu_rate:23.1f} {scene_wall:17.3f}")
+    args = _parse()
+    if args.omp_wait_policy:
+        os.environ["OMP_WAIT_POLICY"] = args.omp_wait_policy.upper()
+    import torch
+
+    from core.presets import get_preset
+    from services.cli.render_pool import usable_cpus
+
+    presets = [get_preset(name) for name in args.presets]
+    print(f"torch {torch.__version__}; {usable_cpus()} usable CPUs (os.cpu_count {os.cpu_count()}); "
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', 'unset')}; load average {_load()} (1/5/15 min)")
+    print(f"{'preset':7} {'H×W':>8} {'T×V':>4} {'device':6} {'run':>18} {'wall VF/s':>10} "
+          f"{'VF per CPU-s':>12} {'idle N-core est.':>16} {'load 1 min':>10}")
+    for preset in presets:
+        shape = f"{preset.camera.H:>3}×{preset.camera.W:<4} {preset.num_frames}×{preset.num_views:<2}"
+        for threads in args.threads:
+            wall, cpu = _single_process(preset, threads, args.repeats, "cpu")
+            print(f"{preset.name:7} {shape} {'cpu':6} {f'1 proc × {threads} thr':>18} {wall:10.1f} {cpu:12.1f} "
+                  f"{'':>16} {os.getloadavg()[0]:10.2f}", flush=True)
+        for processes in args.processes:
+            wall, cpu = _pooled(preset, processes, args.pool_records)
+            run = f"{processes} proc × 1 thr" if processes > 1 else "--jobs 1 (in-proc)"
+            print(f"{preset.name:7} {shape} {'cpu':6} {run:>18} {wall:10.1f} {cpu:12.1f} "
+                  f"{processes * cpu:16.1f} {os.getloadavg()[0]:10.2f}", flush=True)
+        if args.cuda and torch.cuda.is_available():
+            wall, _ = _single_process(preset, 1, args.repeats, "cuda")
+            print(f"{preset.name:7} {shape} {'cuda':6} {'1 proc':>18} {wall:10.1f} {'':>12} {'':>16} "
+                  f"{os.getloadavg()[0]:10.2f}", flush=True)
+    print(f"load average at the end {_load()}")
 
 
 if __name__ == "__main__":
