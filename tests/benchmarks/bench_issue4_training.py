@@ -16,6 +16,11 @@ move 0.4-1.6 m).
   egomotion-stabilised pair (record poses), L1 EPE in voxels split full/static/moving against the
   zero-motion baseline (no occupancy mask: the raw flow), EPE3D on the labelled occupied voxels.
 Times are wall and process CPU seconds of each training loop.
+
+Measured with the defaults (2-core machine shared with other jobs, 1 torch thread): egomotion beats
+identity on all four rows (rotation 0.844° vs 0.867° on recorded motion — a thin margin; translation
+0.304 m vs 0.841 m); flow does NOT beat zero motion on moving voxels (1.159 vs 1.156 L1 voxels) — it
+learns the synthetic motions but still predicts ~0 on the cars of real pairs (also after 400 steps).
 """
 
 from __future__ import annotations
@@ -166,7 +171,7 @@ def main() -> None:
     print(f"\nHeld-out figures ({len(test_data)} tiny records, moving ego); lower is better everywhere:")
     print(f"| {'metric':<52} | {'model':>7} | {'baseline':>20} | verdict | training")
     for name, model, base_name, base, how in rows:
-        verdict = "beats" if model < base else "LOSES"
+        verdict = "beats" if model < base - 5e-4 else ("ties" if model <= base + 5e-4 else "LOSES")
         print(f"| {name:<52} | {model:7.3f} | {base_name:>11} {base:8.3f} | {verdict:<7} | {how}")
 
 
