@@ -9,7 +9,8 @@ Rows:
   records after a warm-up): wall rate, and view-frames per CPU-second of the process.
 - `N proc × 1 thr`: N worker processes of one thread each rendering records in order, exactly as
   `n3dmap data generate --jobs N` does (services/cli/render_pool.py): aggregate wall rate over the
-  records after each worker's first (start-up and warm-up excluded); view-frames per CPU-second of
+  last three quarters of the records (steady state; the end-to-end rate with the workers' start-up
+  is printed after the row); view-frames per CPU-second of
   the workers (read from /proc); and N × that, the rate N idle cores would give (the processes share
   nothing but memory bandwidth, so they scale; threads do not, so their rows have no such estimate).
   `--jobs 1` is the in-process path of `data generate --jobs 1` (one torch thread).
@@ -33,18 +34,26 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 def _parse() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--threads", type=int, nargs="+", default=[1, 2],
-                        help="torch threads of the single-process rows (default: 1 2)")
+    parser.add_argument("--threads", type=int, nargs="*", default=[1, 2],
+                        help="torch threads of the single-process rows (default: 1 2; none: skip)")
     parser.add_argument("--processes", type=int, nargs="*", default=[2],
                         help="render-process counts of the pooled rows (default: 2; none: skip)")
     parser.add_argument("--repeats", type=int, default=5, help="records per single-process row")
-    parser.add_argument("--pool-records", type=int, default=12,
-                        help="timed records per process in the pooled rows (default: 12)")
+    parser.add_argument("--pool-records", type=int, default=24,
+                        help="records per process in the pooled rows at the paper preset; smaller presets "
+                             "render proportionally more (default: 24)")
     parser.add_argument("--presets", nargs="+", default=["paper", "tiny"])
     parser.add_argument("--omp-wait-policy", choices=["passive", "active"], default=None,
                         help="set OMP_WAIT_POLICY for this process (before torch is imported)")
     parser.add_argument("--cuda", action="store_true", help="also time rendering on CUDA when available")
     return parser.parse_args()
+
+
+PAPER_PIXELS = 2 * 6 * 128 * 384  # T·V·H·W of a paper-preset record
+
+
+def _pixels(preset) -> int:
+    return preset.num_frames * preset.num_views * preset.camera.H * preset.camera.W
 
 
 def _load() -> str:
@@ -87,26 +96,32 @@ def _children_cpu_seconds() -> float:
     return total / ticks
 
 
-def _pooled(preset, processes: int, records_per_process: int) -> tuple[float, float]:
-    """(aggregate wall view-frames/s, view-frames per CPU-second of the workers) with `processes`
-    render workers rendering in order, as `data generate --jobs` does."""
+def _pooled(preset, processes: int, records_per_process: int) -> tuple[float, float, float]:
+    """(end-to-end wall view-frames/s including the workers' start-up, steady-state wall view-frames/s,
+    view-frames per CPU-second of the workers in the steady state) with `processes` render workers
+    rendering in order, as `data generate --jobs` does.
+
+    Steady state = after the first quarter of the records: a worker still starting up (importing torch
+    takes seconds on a busy machine) lets the others take the first records, so "each worker's first
+    record" cannot be told from the arrival order."""
     from services.cli.render_pool import RecordSpec, render_records
 
-    total = processes * (records_per_process + 1)
+    total = processes * records_per_process
+    warm = max(processes, total // 4) - 1  # the clock starts when this record arrives
     specs = [RecordSpec(preset=preset.name, seed=i, moving_ego=True) for i in range(total)]
+    vf = preset.num_frames * preset.num_views
     arrivals, cpu_marks = [], {}
     # jobs=1 renders in this process (as `--jobs 1` does): its own CPU time then, not its children's.
     cpu_seconds = _children_cpu_seconds if processes > 1 else time.process_time
+    t0 = time.perf_counter()
     for i, _ in enumerate(render_records(specs, jobs=processes)):
         arrivals.append(time.perf_counter())
-        # The clock starts at the arrival of record `processes - 1`: by then every worker has started
-        # and rendered once, so what follows is the steady state.
-        if i in (processes - 1, total - 1):
+        if i in (warm, total - 1):
             cpu_marks[i] = cpu_seconds()
-    timed_vf = (total - processes) * preset.num_frames * preset.num_views
-    wall = arrivals[-1] - arrivals[processes - 1]
-    cpu = cpu_marks[total - 1] - cpu_marks[processes - 1]
-    return timed_vf / wall, timed_vf / cpu if cpu > 0 else float("nan")
+    timed_vf = (total - 1 - warm) * vf
+    cpu = cpu_marks[total - 1] - cpu_marks[warm]
+    return (total * vf / (arrivals[-1] - t0), timed_vf / (arrivals[-1] - arrivals[warm]),
+            timed_vf / cpu if cpu > 0 else float("nan"))
 
 
 def main() -> None:
@@ -130,10 +145,12 @@ def main() -> None:
             print(f"{preset.name:7} {shape} {'cpu':6} {f'1 proc × {threads} thr':>18} {wall:10.1f} {cpu:12.1f} "
                   f"{'':>16} {os.getloadavg()[0]:10.2f}", flush=True)
         for processes in args.processes:
-            wall, cpu = _pooled(preset, processes, args.pool_records)
+            per_process = args.pool_records * max(1, PAPER_PIXELS // _pixels(preset))
+            end_to_end, wall, cpu = _pooled(preset, processes, per_process)
             run = f"{processes} proc × 1 thr" if processes > 1 else "--jobs 1 (in-proc)"
             print(f"{preset.name:7} {shape} {'cpu':6} {run:>18} {wall:10.1f} {cpu:12.1f} "
-                  f"{processes * cpu:16.1f} {os.getloadavg()[0]:10.2f}", flush=True)
+                  f"{processes * cpu:16.1f} {os.getloadavg()[0]:10.2f}   end-to-end {end_to_end:.1f} VF/s "
+                  f"({processes * per_process} records incl. start-up)", flush=True)
         if args.cuda and torch.cuda.is_available():
             wall, _ = _single_process(preset, 1, args.repeats, "cuda")
             print(f"{preset.name:7} {shape} {'cuda':6} {'1 proc':>18} {wall:10.1f} {'':>12} {'':>16} "
