@@ -140,10 +140,11 @@ def serve_and_call(bundle: Path, data: Path) -> None:
 def stream(bundle: Path) -> None:
     """6. Bridge + simulated camera + listener over zenoh on loopback (peer mode)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    bridge_cmd = ["stream", "bridge", "--bundle", str(bundle), "--listen", endpoint, "--duration", "120",
+    frames = 16
+    bridge_cmd = ["stream", "bridge", "--bundle", str(bundle), "--listen", endpoint, "--duration", "300",
                   "--bridge-id", "quickstart", "--status-every", "0"]
-    listen_cmd = ["stream", "listen", "--camera-id", "cam0", "--connect", endpoint, "--count", "12", "--timeout", "60"]
-    camera_cmd = ["stream", "camera", "--camera-id", "cam0", "--synthetic", "--rate", "5", "--frames", "16",
+    listen_cmd = ["stream", "listen", "--camera-id", "cam0", "--connect", endpoint]
+    camera_cmd = ["stream", "camera", "--camera-id", "cam0", "--synthetic", "--rate", "5", "--frames", str(frames),
                   "--connect", endpoint]
     print("\n== 6. stream a simulated camera through the zenoh bridge", flush=True)
     for cmd in (bridge_cmd, listen_cmd, camera_cmd):
@@ -155,7 +156,8 @@ def stream(bundle: Path) -> None:
         code = subprocess.call(CLI + camera_cmd)
         if code != 0:
             raise SystemExit(f"quickstart: the simulated camera failed with exit status {code}")
-        listener.wait(timeout=120)
+        wait_until_bridge_idle(endpoint, bridge_id="quickstart", camera="cam0", frames=frames)
+        time.sleep(0.5)  # the last detections are on their way to the listener
     finally:
         for proc in (listener, bridge):
             if proc.poll() is None:
@@ -168,6 +170,25 @@ def stream(bundle: Path) -> None:
             print(f"   bridge accounting for cam0: received {status.get('received')}, processed "
                   f"{status.get('processed')}, dropped {status.get('dropped')}, malformed {status.get('malformed')}; "
                   f"latency p50 {status.get('latency_ms', {}).get('p50')} ms", flush=True)
+
+
+def wait_until_bridge_idle(endpoint: str, *, bridge_id: str, camera: str, frames: int, timeout_s: float = 120) -> None:
+    """Ask the bridge's status queryable until every frame sent has reached a final bucket."""
+    from services.streaming import keys
+    from services.streaming.session import ZenohOptions, open_session
+
+    session = open_session(ZenohOptions(connect=(endpoint,)))
+    try:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            for reply in session.get(keys.bridge_status(bridge_id), timeout=2.0):
+                if reply.ok is not None:
+                    stats = json.loads(reply.ok.payload.to_bytes())["cameras"].get(camera, {})
+                    if stats.get("received") == frames and stats.get("pending") == 0:
+                        return
+            time.sleep(0.2)
+    finally:
+        session.close()
 
 
 if __name__ == "__main__":

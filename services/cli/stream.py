@@ -163,7 +163,8 @@ def _run_listen(args: argparse.Namespace) -> int:
     options = _zenoh_options(args, default_listen=False)
     count = listen(zenoh_options=options, camera_id=args.camera_id, max_messages=args.count,
                    timeout_s=args.timeout, emit=print_json if args.json else print_human,
-                   on_ready=lambda key: print(f"listener: subscribed to {key}", file=sys.stderr, flush=True))
+                   on_ready=lambda key: print(f"listener: subscribed to {key}", file=sys.stderr, flush=True),
+                   stop=_stop_event())
     print(f"listener: received {count} detection messages", file=sys.stderr, flush=True)
     return 0
 

@@ -7,6 +7,7 @@ callback thread, clean shutdown — ECOSYSTEM.md warns against closing sessions 
 from __future__ import annotations
 
 import json
+import threading
 import time
 from typing import Callable
 
@@ -42,9 +43,10 @@ def format_detections(d: dict) -> str:
 
 def listen(*, zenoh_options: ZenohOptions, camera_id: str = "*", max_messages: int | None = None,
            timeout_s: float | None = None, emit: Callable[[dict], None],
-           on_ready: Callable[[str], None] | None = None) -> int:
+           on_ready: Callable[[str], None] | None = None, stop: threading.Event | None = None) -> int:
     """Receive detections for `camera_id` (a key-expression chunk, `*` = every camera) and call
-    `emit` with each as a dict (`on_ready(key)` once subscribed); stop after `max_messages` or `timeout_s` of silence. Returns the count.
+    `emit` with each as a dict (`on_ready(key)` once subscribed); stop after `max_messages`, after
+    `timeout_s` of silence, or when `stop` is set (SIGTERM/SIGINT in the CLI). Returns the count.
     Undecodable samples are reported through `emit` as {"error": ...} rather than ending the loop."""
     session = open_session(zenoh_options)
     count = 0
@@ -54,7 +56,7 @@ def listen(*, zenoh_options: ZenohOptions, camera_id: str = "*", max_messages: i
             on_ready(keys.moving_objects(camera_id))
         try:
             last = time.monotonic()
-            while max_messages is None or count < max_messages:
+            while (max_messages is None or count < max_messages) and not (stop is not None and stop.is_set()):
                 sample = sub.try_recv()
                 if sample is None:
                     if timeout_s is not None and time.monotonic() - last > timeout_s:
