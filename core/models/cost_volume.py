@@ -44,3 +44,19 @@ def cross_correlation_3d(f0: torch.Tensor, f1: torch.Tensor, radius: tuple[int, 
                 costs.append((f0 * shifted).sum(dim=1))  # B×Z×Y×X
     cost = torch.stack(costs, dim=1)  # B×D×Z×Y×X
     return cost / C if normalize else cost
+
+
+def soft_argmax_displacement(cost: torch.Tensor, radius: tuple[int, int, int], beta: torch.Tensor | float) -> torch.Tensor:
+    """cost B×D×Z×Y×X (from `cross_correlation_3d` with the same radius) -> expected displacement B×3×Z×Y×X.
+
+    flow(p) = Σ_d softmax_d(β · cost[:, d, p]) · d, channels (x, y, z) in voxels. A correlator that
+    works before any training: where one displacement matches clearly it wins; where all match equally
+    (empty space, the inside of a uniform surface) the weights spread symmetrically and the mean stays
+    near zero.
+    """
+    disp = displacements(radius, device=cost.device, dtype=cost.dtype)  # D×3
+    if cost.shape[1] != disp.shape[0]:
+        raise ShapeError(f"soft_argmax_displacement: cost has {cost.shape[1]} displacements, radius {radius} "
+                         f"gives {disp.shape[0]}")
+    p = torch.softmax(beta * cost, dim=1)  # B×D×Z×Y×X
+    return torch.einsum("bdzyx,dc->bczyx", p, disp)  # B×3×Z×Y×X

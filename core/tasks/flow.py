@@ -1,9 +1,13 @@
 """3D imagination flow training step over frozen mapper features (paper §3.3 and appendix).
 
-Per step, at a random t with t+1 available:
-  F0 = map of time t in ref_t; F1 = map of time t+1 lifted straight into ref_t with the record poses
-  (egomotion-stabilised by re-unprojection, no resampling). The mapper is frozen (no gradient, eval
-  mode): the paper trains flow over frozen features, and the warp loss would otherwise collapse them.
+Per step, at a random t with t+1 available, the pair the flow module compares (`inputs`, see
+core.models.flow3d for why "volume" exists):
+  "features": F0 = map of time t in ref_t; F1 = map of time t+1 lifted straight into ref_t with the
+  record poses (egomotion-stabilised by re-unprojection, no resampling). The mapper is frozen (no
+  gradient, eval mode): the paper trains flow over frozen features, and the warp loss would otherwise
+  collapse them. Measured on tiny: these maps do not carry object motion (flow over them ties zero motion);
+  "volume": the 4-channel fused input volumes (occupancy + RGB) of t and t+1, lifted the same way; the
+  mapper is not run. Below, F0/F1 stand for whichever pair.
 Losses:
   synthetic  — F0 moved by a random rigid motion (equal thirds large ±6°/±1 m, small ±1°/±0.1 m, zero;
                core.models.flow_synthetic); L1 between predicted and true flow at every level
@@ -31,7 +35,7 @@ from core.errors import ShapeError
 from core.geometry import se3
 from core.geometry.grid import GridConfig
 from core.geometry.resample import warp_flow, warp_rigid
-from core.models.flow3d import Flow3D, downsample_flow
+from core.models.flow3d import FLOW_INPUTS, VOLUME_CHANNELS, Flow3D, downsample_flow
 from core.models.flow_synthetic import move_block, rigid_flow, sample_motions, sample_object_motions
 from core.models.egomotion_inputs import fused_input_volume
 from core.models.latent_map import Mapper
@@ -49,8 +53,12 @@ class FlowTaskConfig:
     warp_weight: float = 1.0
     smooth_weight: float = 0.05
     finest: int = 1                 # Flow3D.finest: 1 = PWC's half-resolution last decoder, 0 = on the grid
+    refine: bool = True             # Flow3D.refine: soft-argmax correlator step on the grid after finest=1
     occupied_warp: bool = True      # warp loss over occupied voxels of t only (see module doc)
     object_fraction: float = 0.5    # share of steps whose synthetic motion moves one block (see module doc)
+    inputs: str = "features"        # Flow3D.inputs: "features" (mapper maps, the paper) or "volume" (see module doc)
+    unit_cost: bool = True          # Flow3D.unit_cost: cosine cost volume
+    soft_argmax: bool = False       # Flow3D.soft_argmax: correlator prior at every decoder level too
     seed: int | None = None
 
 
@@ -78,15 +86,17 @@ class FlowTask(nn.Module):
         self.cfg = config
         self.mapper = Mapper(grid=config.grid, width=config.encoder_width, feature_dim=config.feature_dim)
         self.mapper.requires_grad_(False)
-        self.flow = Flow3D(in_channels=config.feature_dim, channels=config.channels, levels=config.levels,
-                           finest=config.finest)
+        if config.inputs not in FLOW_INPUTS:
+            raise ValueError(f"FlowTaskConfig.inputs must be one of {FLOW_INPUTS}, got {config.inputs!r}")
+        in_channels = config.feature_dim if config.inputs == "features" else VOLUME_CHANNELS
+        self.flow = Flow3D(in_channels=in_channels, channels=config.channels, levels=config.levels,
+                           finest=config.finest, inputs=config.inputs, unit_cost=config.unit_cost,
+                           soft_argmax=config.soft_argmax, refine=config.refine)
         self._generator = torch.Generator().manual_seed(config.seed) if config.seed is not None else None
 
     @staticmethod
     def from_preset(preset: Preset, **overrides) -> "FlowTask":
-        # tiny's 1 m voxels need the last decoder on the grid (see core.models.flow3d); finer grids keep PWC's.
-        base = dict(grid=preset.grid, feature_dim=preset.feature_dim, encoder_width=preset.encoder_width,
-                    finest=0 if preset.grid.voxel_size >= 1.0 else 1)
+        base = dict(grid=preset.grid, feature_dim=preset.feature_dim, encoder_width=preset.encoder_width)
         base.update(overrides)
         return FlowTask(config=FlowTaskConfig(**base))
 
@@ -107,6 +117,25 @@ class FlowTask(nn.Module):
         return f0, f1
 
     @torch.no_grad()
+    def stabilised_volumes(self, batch: dict[str, torch.Tensor], t: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Fused 4-channel input volumes (occupancy, RGB) of t and t+1, both in ref_t: B×4×Z×Y×X each."""
+        rgb, depth, pix = batch["rgb"], batch["depth"], batch["pix_T_cam"]
+        v0 = fused_input_volume(rgb[:, t], depth[:, t], pix, cam_T_ref(batch, t, t), self.cfg.grid)
+        v1 = fused_input_volume(rgb[:, t + 1], depth[:, t + 1], pix, cam_T_ref(batch, t + 1, t), self.cfg.grid)
+        return v0, v1
+
+    @torch.no_grad()
+    def flow_inputs(self, batch: dict[str, torch.Tensor], t: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What the flow module compares, t and t+1 in ref_t (B×C×Z×Y×X each, C = flow.in_channels), and
+        the occupied voxels of t (B×1×Z×Y×X)."""
+        v0, v1 = self.stabilised_volumes(batch, t)
+        occupied = (v0[:, :1] > 0).to(v0.dtype)  # B×1×Z×Y×X
+        if self.cfg.inputs == "volume":
+            return v0, v1, occupied  # the frozen mapper is not needed for training
+        f0, f1 = self.stabilised_maps(batch, t)
+        return f0, f1, occupied
+
+    @torch.no_grad()
     def occupied(self, batch: dict[str, torch.Tensor], t: int) -> torch.Tensor:
         """Voxels of ref_t holding a depth point of any view at t: B×1×Z×Y×X float in {0, 1}."""
         vol = fused_input_volume(batch["rgb"][:, t], batch["depth"][:, t], batch["pix_T_cam"],
@@ -118,7 +147,7 @@ class FlowTask(nn.Module):
         if T < 2:
             raise ShapeError(f"flow training needs records with at least 2 time steps, got T={T}")
         t = int(torch.randint(T - 1, (1,), generator=self._generator))
-        f0, f1 = self.stabilised_maps(batch, t)
+        f0, f1, occupied = self.flow_inputs(batch, t)
         g = self.cfg.grid
         if float(torch.rand((), generator=self._generator)) < self.cfg.object_fraction:
             motion, block = sample_object_motions(B, g, generator=self._generator, dtype=f0.dtype, device=f0.device)
@@ -132,7 +161,6 @@ class FlowTask(nn.Module):
         real = self.flow(f0, f1)
         residual = (f0 - warp_flow(f1, real["flow"])).abs().sum(1, keepdim=True)  # B×1×Z×Y×X
         if self.cfg.occupied_warp:
-            occupied = self.occupied(batch, t)  # B×1×Z×Y×X
             loss_warp = (residual * occupied).sum() / occupied.sum().clamp_min(1.0)
         else:
             loss_warp = residual.mean()

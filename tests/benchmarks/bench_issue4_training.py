@@ -2,7 +2,7 @@
 held-out figures against their baselines (identity egomotion, zero-motion flow) as one table.
 
     python tests/benchmarks/bench_issue4_training.py [--ego-steps 150] [--pretrain-steps 150]
-        [--flow-steps 150] [--flow-lr 1e-3] [--occ-steps 60] [--threads 1]
+        [--flow-steps 150] [--flow-lr 1e-3] [--flow-inputs volume|features] [--occ-steps 60] [--threads 1]
 
 Data: `tiny` preset records from core.synthetic.generate_record with a moving ego (T = 2), train seeds
 1000+, held-out seeds 0+ (tiny: 1 m voxels; the ego drives 0.4-1.2 m and yaws < 1.7° per step; cars
@@ -10,11 +10,13 @@ move 0.4-1.6 m).
 - Egomotion: EgomotionTask defaults (soft-argmax prior + residual MLP, equal-thirds augmentation),
   batch 2, Adam lr 1e-3; evaluated on the held-out pairs' recorded motion, and with an extra ±6°/±1 m
   perturbation of the query frame.
-- Flow: the mapper is first pretrained in-process (view-contrastive, `--pretrain-steps`, batch 2,
-  lr 1e-3), then frozen; the flow module trains self-supervised (synthetic rigid motions + warp +
-  smoothness; gt_flow is used only for evaluation), batch 1, lr `--flow-lr`. Evaluation: the
-  egomotion-stabilised pair (record poses), L1 EPE in voxels split full/static/moving against the
-  zero-motion baseline (no occupancy mask: the raw flow), EPE3D on the labelled occupied voxels.
+- Flow: the module trains self-supervised (synthetic rigid/object motions + warp + smoothness; gt_flow
+  is used only for evaluation), batch 1, lr `--flow-lr`, over `--flow-inputs`: `volume` (default) =
+  the stabilised 4-channel input volumes (occupancy + RGB; no mapper needed, so no pretraining), or
+  `features` = the mapper's maps, the mapper first pretrained in-process (view-contrastive,
+  `--pretrain-steps`, batch 2, lr 1e-3) and frozen. Evaluation: the egomotion-stabilised pair (record
+  poses), L1 EPE in voxels split full/static/moving against the zero-motion baseline (no occupancy
+  mask: the raw flow), EPE3D on the labelled occupied voxels.
 Times are wall and process CPU seconds of each training loop.
 
 Measured with the defaults (2-core machine shared with other jobs, 1 torch thread): egomotion beats
@@ -99,8 +101,8 @@ def eval_flow(task, data):
     sums = {"model": {}, "zero": {}}
     for rec in data:
         b = records_to_batch([rec])
-        f0, f1 = task.stabilised_maps(b, 0)
-        pred = task.flow(f0, f1)["flow"]
+        x0, x1, _ = task.flow_inputs(b, 0)
+        pred = task.flow(x0, x1)["flow"]
         gt = gt_flow(rec, 0, TINY.grid)[None]
         occupied = gt_occupancy(rec, 0, TINY.grid)[None] > 0.5
         sums["model"] = add_sums(sums["model"], flow_error_sums(pred, gt, occupied=occupied))
@@ -114,6 +116,7 @@ def main() -> None:
     ap.add_argument("--pretrain-steps", type=int, default=150)
     ap.add_argument("--flow-steps", type=int, default=150)
     ap.add_argument("--flow-lr", type=float, default=1e-3)
+    ap.add_argument("--flow-inputs", choices=("volume", "features"), default="volume")
     ap.add_argument("--occ-steps", type=int, default=60)
     ap.add_argument("--train-records", type=int, default=24)
     ap.add_argument("--test-records", type=int, default=8)
@@ -141,16 +144,16 @@ def main() -> None:
             rows.append((f"egomotion translation (m), {what}", r["trans_err_m"][0], "identity", r["trans_err_m"][1], how))
 
     if "flow" not in skip:
-        flow = FlowTask.from_preset(TINY, seed=0)
-        pre_how = "untrained mapper"
-        if args.pretrain_steps > 0:
+        flow = FlowTask.from_preset(TINY, seed=0, inputs=args.flow_inputs)
+        pre_how = "inputs: stabilised input volumes" if args.flow_inputs == "volume" else "untrained mapper"
+        if args.pretrain_steps > 0 and args.flow_inputs == "features":
             pre = build_task("pretrain", TINY, seed=0)
             pwall, pcpu = train(pre, train_data, args.pretrain_steps, 2, 1e-3, "pretrain")
             flow.mapper.load_state_dict(pre.mapper.state_dict())
             pre_how = f"mapper pretrained {args.pretrain_steps} steps × batch 2 ({pwall:.0f} s wall / {pcpu:.0f} s CPU)"
         wall, cpu = train(flow, train_data, args.flow_steps, 1, args.flow_lr, "flow")
         s = eval_flow(flow, test_data)
-        how = (f"{args.flow_steps} steps × batch 1, lr {args.flow_lr:g}, {wall:.0f} s wall / {cpu:.0f} s CPU; "
+        how = (f"{args.flow_inputs} inputs, {args.flow_steps} steps × batch 1, lr {args.flow_lr:g}, {wall:.0f} s wall / {cpu:.0f} s CPU; "
                f"{pre_how}")
         for split in ("moving", "static", "full"):
             rows.append((f"flow L1 EPE (voxels), {split} ({s['zero'][f'voxels_{split}']} voxels)",
