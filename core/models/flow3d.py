@@ -21,8 +21,11 @@ cosine costs, flow = up + soft-argmax. Why: at 1 m voxels (tiny) a car is ~4×2�
 ~0.4-1.6 voxels; the half-resolution decoders blur it into the background, and a full-resolution decoder
 costs ~6× the whole module (tiny, CPU); the decoder-free correlator step recovers the object's
 displacement at the grid's resolution for the price of one cost volume. Measured (tiny, 150 self-supervised
-steps, 8 held-out records, moving voxels' L1 EPE vs zero motion 1.156): refine 0.807, full-resolution
-decoder + soft-argmax 0.803, no correlator 1.15-1.16.
+steps, 8 held-out records, moving voxels' L1 EPE vs zero motion 1.156 / static voxels' L1 EPE):
+refine (β 10) 0.807 / 0.43, full-resolution decoder + soft-argmax at every level 0.803 / 0.44, no
+correlator 1.15-1.16 / ~0.01. The soft-argmax spreads sub-voxel noise onto static voxels near surfaces;
+a sharper β and a small learned bonus `zero_bias` of d = 0 trade some of the moving accuracy for much
+less of it: β 30 + bonus 0.05: 0.861 / 0.20 (bonus 0.2: 0.993 / 0.15) — FlowTask's defaults.
 The pyramid comes from a small learned 3D conv on the input, then average pooling, so the coarse voxels
 of level l are exactly the 2^l blocks of the grid and flow upsampling needs no offset.
 The last conv of each decoder starts at zero: an untrained module without the correlator steps predicts
@@ -86,8 +89,9 @@ class Flow3D(nn.Module):
     def __init__(self, *, in_channels: int = 32, channels: int = 16, levels: int = 3,
                  radius: tuple[int, int, int] = (1, 1, 1), hidden: int = 32, finest: int = 1,
                  unit_cost: bool = False, soft_argmax: bool = False, beta: float = 10.0,
-                 refine: bool = False, inputs: str = "features") -> None:
+                 refine: bool = False, inputs: str = "features", zero_bias: float = 0.0) -> None:
         super().__init__()
+        self.zero_bias = float(zero_bias)
         if inputs not in FLOW_INPUTS:
             raise ValueError(f"Flow3D: inputs must be one of {FLOW_INPUTS}, got {inputs!r}")
         if inputs == "volume" and in_channels != VOLUME_CHANNELS:
@@ -95,8 +99,12 @@ class Flow3D(nn.Module):
         self.inputs = inputs
         self.unit_cost, self.soft_argmax, self.beta = bool(unit_cost), bool(soft_argmax), float(beta)
         self.refine = bool(refine)
-        # β of each level's soft-argmax (decoder levels, then the grid refinement), learned in log space (β > 0)
-        self.log_beta = nn.Parameter(torch.full((levels + 1,), float(beta)).log())
+        if self.soft_argmax or self.refine:  # only then (modules saved without them keep loading)
+            # β of each level's soft-argmax (decoder levels, then the grid refinement), learned in log space
+            self.log_beta = nn.Parameter(torch.full((levels + 1,), float(beta)).log())
+        if self.refine:
+            # cosine bonus of d = 0 in the refinement's soft-argmax, learned (why: see module doc)
+            self.refine_zero_bias = nn.Parameter(torch.tensor(float(zero_bias)))
         if finest not in (0, 1):
             raise ValueError(f"Flow3D: finest must be 0 (grid) or 1 (half resolution), got {finest}")
         self.finest = int(finest)
@@ -126,7 +134,7 @@ class Flow3D(nn.Module):
         return {"in_channels": self.in_channels, "channels": self.channels, "levels": self.levels,
                 "radius": list(self.radius), "hidden": self.hidden, "finest": self.finest,
                 "unit_cost": self.unit_cost, "soft_argmax": self.soft_argmax, "beta": self.beta,
-                "refine": self.refine, "inputs": self.inputs}
+                "refine": self.refine, "inputs": self.inputs, "zero_bias": self.zero_bias}
 
     def forward(self, f0: torch.Tensor, f1: torch.Tensor) -> dict[str, torch.Tensor | list[torch.Tensor]]:
         """f0, f1: B×F×Z×Y×X (same frame) -> {"flow": B×3×Z×Y×X (grid resolution),
@@ -160,6 +168,8 @@ class Flow3D(nn.Module):
             up = upsample_flow(flow, sizes[0])  # B×3×Z×Y×X
             c0, c1 = pyramid[0][:B], pyramid[0][B:]  # B×C×Z×Y×X each
             raw = cross_correlation_3d(F.normalize(c0, dim=1), F.normalize(warp_flow(c1, up), dim=1), self.radius)
+            centre = raw.shape[1] // 2  # d = 0 (z-major order, see core.models.cost_volume.displacements)
+            raw = torch.cat([raw[:, :centre], raw[:, centre:centre + 1] + self.refine_zero_bias, raw[:, centre + 1:]], 1)
             flow = up + soft_argmax_displacement(raw, self.radius, self.log_beta[-1].exp())  # B×3×Z×Y×X
             per_level.append(flow)
         return {"flow": upsample_flow(flow, sizes[0]), "levels": per_level}

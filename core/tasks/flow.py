@@ -54,6 +54,8 @@ class FlowTaskConfig:
     smooth_weight: float = 0.05
     finest: int = 1                 # Flow3D.finest: 1 = PWC's half-resolution last decoder, 0 = on the grid
     refine: bool = True             # Flow3D.refine: soft-argmax correlator step on the grid after finest=1
+    beta: float = 30.0              # Flow3D.beta: initial soft-argmax sharpness (see core.models.flow3d)
+    zero_bias: float = 0.05         # Flow3D.zero_bias: initial cosine bonus of zero motion in the refinement
     occupied_warp: bool = True      # warp loss over occupied voxels of t only (see module doc)
     object_fraction: float = 0.5    # share of steps whose synthetic motion moves one block (see module doc)
     inputs: str = "features"        # Flow3D.inputs: "features" (mapper maps, the paper) or "volume" (see module doc)
@@ -91,7 +93,8 @@ class FlowTask(nn.Module):
         in_channels = config.feature_dim if config.inputs == "features" else VOLUME_CHANNELS
         self.flow = Flow3D(in_channels=in_channels, channels=config.channels, levels=config.levels,
                            finest=config.finest, inputs=config.inputs, unit_cost=config.unit_cost,
-                           soft_argmax=config.soft_argmax, refine=config.refine)
+                           soft_argmax=config.soft_argmax, refine=config.refine, beta=config.beta,
+                           zero_bias=config.zero_bias)
         self._generator = torch.Generator().manual_seed(config.seed) if config.seed is not None else None
 
     @staticmethod

@@ -56,3 +56,32 @@ def test_volume_inputs_take_four_channels_and_are_in_the_config():
     assert out["flow"].shape == (1, 3, 8, 4, 8)
     with pytest.raises(ValueError, match="volume"):
         Flow3D(in_channels=8, inputs="volume")
+
+
+def test_a_module_saved_without_the_correlator_still_loads():
+    """Flow3D configs from before the correlator (no unit_cost/soft_argmax/refine keys) build the same
+    parameters, so their saved weights load strictly."""
+    from core.models.registry import build_module
+
+    old = Flow3D(in_channels=8, channels=4, levels=2, hidden=8)
+    config = {k: v for k, v in old.config().items()
+              if k in ("in_channels", "channels", "levels", "radius", "hidden", "finest")}
+    build_module("flow3d", config).load_state_dict(old.state_dict(), strict=True)
+
+
+def test_volume_task_trains_the_flow_on_input_volumes():
+    from core.data.batch import records_to_batch
+    from core.presets import TINY
+    from core.synthetic.generate import generate_record
+    from core.tasks.flow import FlowTask
+
+    task = FlowTask.from_preset(TINY, seed=0, inputs="volume")
+    assert task.flow.config()["inputs"] == "volume" and task.flow.in_channels == 4
+    batch = records_to_batch([generate_record(TINY, seed=3, moving_ego=True)])
+    x0, x1, occupied = task.flow_inputs(batch, 0)
+    assert x0.shape == x1.shape == (1, 4, *TINY.grid.shape_zyx) and occupied.shape == (1, 1, *TINY.grid.shape_zyx)
+    torch.testing.assert_close(occupied, task.occupied(batch, 0))
+    out = task(batch)
+    out["loss"].backward()
+    assert torch.isfinite(out["loss"]) and task.flow.refine_zero_bias.grad is not None
+    assert all(p.grad is None for p in task.mapper.parameters())  # frozen and not run
