@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import os
 
+from services.cli.argtypes import non_negative_float, port, positive_float, positive_int
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -13,20 +15,20 @@ def register(subparsers) -> None:
                     "requests and stops; SIGHUP (or POST /v1/admin/reload) reloads the bundle.")
     p.add_argument("--bundle", required=True, help="model bundle directory (bundle.json + weights)")
     p.add_argument("--host", default="127.0.0.1", help="address both transports bind (default 127.0.0.1)")
-    p.add_argument("--http-port", type=int, default=8000)
-    p.add_argument("--grpc-port", type=int, default=50051)
+    p.add_argument("--http-port", type=port, default=8000)
+    p.add_argument("--grpc-port", type=port, default=50051)
     p.add_argument("--token", default=os.environ.get("N3DMAP_TOKEN"),
                    help="bearer token required by both transports (default: $N3DMAP_TOKEN; none = open)")
     p.add_argument("--tls-cert", help="PEM certificate for HTTPS and gRPC TLS (with --tls-key)")
     p.add_argument("--tls-key", help="PEM private key")
     p.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default)")
-    p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
-    p.add_argument("--max-batch", type=int, default=8, help="largest micro-batch (default 8)")
-    p.add_argument("--max-wait-ms", type=float, default=2.0, help="longest wait to fill a batch (default 2)")
-    p.add_argument("--queue", type=int, default=64, help="waiting requests before 429 (default 64)")
-    p.add_argument("--timeout", type=float, default=30.0, help="per-request deadline in seconds (default 30)")
-    p.add_argument("--max-body-mb", type=float, default=64.0, help="largest request body (default 64 MB)")
-    p.add_argument("--drain", type=float, default=10.0, help="seconds to drain in-flight requests on shutdown")
+    p.add_argument("--threads", type=positive_int, default=None, help="torch intra-op threads (default: torch's)")
+    p.add_argument("--max-batch", type=positive_int, default=8, help="largest micro-batch (default 8)")
+    p.add_argument("--max-wait-ms", type=non_negative_float, default=2.0, help="longest wait to fill a batch (default 2)")
+    p.add_argument("--queue", type=positive_int, default=64, help="waiting requests before 429 (default 64)")
+    p.add_argument("--timeout", type=positive_float, default=30.0, help="per-request deadline in seconds (default 30)")
+    p.add_argument("--max-body-mb", type=positive_float, default=64.0, help="largest request body (default 64 MB)")
+    p.add_argument("--drain", type=non_negative_float, default=10.0, help="seconds to drain in-flight requests on shutdown")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
     p.set_defaults(func=run)
 
@@ -38,11 +40,8 @@ def run(args: argparse.Namespace) -> int:
 
     if bool(args.tls_cert) != bool(args.tls_key):
         raise CliError("--tls-cert and --tls-key go together")
-    for name in ("http_port", "grpc_port"):
-        if not 0 <= getattr(args, name) <= 65535:
-            raise CliError(f"--{name.replace('_', '-')} must be a port number")
-    if args.max_batch < 1 or args.queue < 1 or args.max_wait_ms < 0 or args.timeout <= 0:
-        raise CliError("--max-batch and --queue must be ≥ 1, --max-wait-ms ≥ 0, --timeout > 0")
+    if args.http_port and args.http_port == args.grpc_port:
+        raise CliError(f"--http-port and --grpc-port are both {args.http_port}; give two different ports")
     runtime = RuntimeConfig(bundle_dir=args.bundle, device=args.device, num_threads=args.threads,
                             max_batch=args.max_batch, max_wait_ms=args.max_wait_ms, max_queue=args.queue,
                             timeout_s=args.timeout)

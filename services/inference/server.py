@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import logging
 import signal
+import socket
 import sys
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
@@ -19,12 +20,16 @@ from pathlib import Path
 
 from grpc_health.v1 import health_pb2
 
-from core.errors import BundleError
+from core.errors import BundleError, N3dmapError
 from services.inference.grpc_server import start_grpc_server
 from services.inference.rest import DEFAULT_MAX_BODY, create_app
 from services.inference.runtime import Runtime, RuntimeConfig
 
 log = logging.getLogger("n3dmap.serve")
+
+
+class ServeStartError(N3dmapError):
+    """The server could not start: a port is taken or cannot be bound on the host."""
 
 
 @dataclass(frozen=True)
@@ -105,6 +110,10 @@ def run(settings: ServeSettings) -> int:
 
     if bool(settings.tls_cert) != bool(settings.tls_key):
         raise BundleError("--tls-cert and --tls-key go together")
+    # Both ports are checked before the bundle loads: uvicorn reports a bind error as a log line plus
+    # exit status 3, and a gRPC bind error from inside the app's startup as a logged traceback.
+    check_port_free(settings.host, settings.http_port, "--http-port")
+    check_port_free(settings.host, settings.grpc_port, "--grpc-port")
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
     runtime = Runtime(settings.runtime)
     app = build_app(settings, runtime)
@@ -112,6 +121,27 @@ def run(settings: ServeSettings) -> int:
                             ssl_certfile=settings.tls_cert, ssl_keyfile=settings.tls_key,
                             timeout_graceful_shutdown=int(settings.drain_s) or None, lifespan="on")
     server = _server_class()(config)
-    server.run()
+    try:
+        server.run()
+    except SystemExit as e:  # uvicorn exits 3 when startup fails (a port taken since the check above)
+        raise ServeStartError(f"the server did not start (uvicorn exit status {e.code}); see the log above") from None
     # uvicorn returns normally when startup fails (port taken, gRPC bind error): say so by status.
     return 0 if server.started else 1
+
+
+def check_port_free(host: str, port: int, option: str) -> None:
+    """ServeStartError naming `option` unless `port` can be bound on `host` now (0: any free port)."""
+    if port == 0:
+        return
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as e:
+        raise ServeStartError(f"--host {host}: cannot resolve it ({e.strerror})") from None
+    family, _, _, _, address = infos[0]
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as uvicorn binds: TIME_WAIT is no conflict
+        try:
+            probe.bind(address)
+        except OSError as e:
+            raise ServeStartError(f"{option} {port}: cannot listen on {host}:{port} ({e.strerror}); "
+                                  "is another server using it?") from None

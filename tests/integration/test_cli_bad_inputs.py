@@ -1,0 +1,89 @@
+"""Bad input to every `n3dmap` subcommand ends in exit status 2 and ONE last stderr line
+`n3dmap <command>: error: ...` naming what is wrong — never a traceback, never a hang.
+
+Table-driven: each case is the argv (with {placeholders} for the fixtures below) and the text the
+error line must contain. Most cases fail in argparse or before any model runs (well under a second
+to a few seconds each); the ones that start a server or a zenoh session are marked slow.
+"""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+pytestmark = pytest.mark.integration
+
+
+def _case(case_id: str, argv: str, names: str, *, slow: bool = False):
+    marks = [pytest.mark.slow] if slow else []
+    return pytest.param(argv, names, id=case_id, marks=marks)
+
+
+# (id, argv with placeholders, text the one error line must contain)
+CASES = [
+    # serve: ranges in argparse; taken ports before the bundle loads (was: uvicorn log + exit 3,
+    # a gRPC bind traceback; --threads 0 / --max-body-mb 0 started a server)
+    _case("serve-http-port-range", "serve --bundle {bundle} --http-port 70000", "--http-port"),
+    _case("serve-threads-0", "serve --bundle {bundle} --threads 0", "--threads"),
+    _case("serve-max-body-0", "serve --bundle {bundle} --max-body-mb 0", "--max-body-mb"),
+    _case("serve-http-port-taken", "serve --bundle {bundle} --http-port {taken} --grpc-port 0", "--http-port {taken}"),
+    _case("serve-grpc-port-taken", "serve --bundle {bundle} --http-port 0 --grpc-port {taken}", "--grpc-port {taken}"),
+    _case("serve-bundle-missing", "serve --bundle {missing} --http-port 0 --grpc-port 0", "{missing}"),
+]
+
+
+@pytest.fixture(scope="module")
+def fixtures(tmp_path_factory) -> dict[str, str]:
+    """Paths the cases refer to: a 2-record tiny dataset, bundles, and broken look-alikes."""
+    from core.data.shards import write_dataset
+    from core.presets import TINY
+    from core.synthetic import generate_record
+    from tests.integration.serve_support import make_bundle
+
+    root = tmp_path_factory.mktemp("bad_inputs")
+    write_dataset(root / "data", (generate_record(TINY, seed=s) for s in (0, 1)), split="val",
+                  preset_name="tiny", grid=TINY.grid.to_dict(), generator={"source": "test"}, seed=0,
+                  shard_bytes=1 << 30)
+    make_bundle(root / "bundle", kinds=("mapper", "occupancy"), note="bad inputs")
+    (root / "file.txt").write_text("not a directory\n")
+    (root / "empty").mkdir()
+    (root / "badjson").mkdir()
+    (root / "badjson" / "manifest.json").write_text('{"format": "n3dmap-sh')
+    return {"data": str(root / "data"), "bundle": str(root / "bundle"), "file": str(root / "file.txt"),
+            "missing": str(root / "missing"), "empty": str(root / "empty"), "badjson": str(root / "badjson"),
+            "out": str(root / "out")}
+
+
+@pytest.fixture()
+def taken_port():
+    """A port held open (listening) for the length of one case."""
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen(1)
+        yield held.getsockname()[1]
+
+
+@pytest.mark.parametrize("argv, names", CASES)
+def test_bad_input_is_one_line_error(argv: str, names: str, fixtures, taken_port) -> None:
+    values = dict(fixtures, taken=str(taken_port))
+    args = [part.format(**values) for part in argv.split()]
+    proc = subprocess.run([sys.executable, "-m", "services.cli.main", *args], cwd=ROOT, capture_output=True,
+                          text=True, timeout=60, env={**_env(), "RAY_ADDRESS": ""})
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2, f"exit {proc.returncode}; stderr:\n{proc.stderr}"
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert lines, "no error message on stderr"
+    command = args[0]
+    assert lines[-1].startswith(f"n3dmap {command}") and ": error: " in lines[-1], lines[-1]
+    assert names.format(**values) in lines[-1], lines[-1]
+
+
+def _env() -> dict[str, str]:
+    import os
+
+    return {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
