@@ -240,9 +240,10 @@ def _dims_text(dims: dict) -> str:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from core.data.shards import ShardDataset, load_manifest
+    from core.data.shards import ShardDataset
 
-    manifest = load_manifest(args.dir)
+    dataset = ShardDataset(args.dir)  # checks that every listed shard is there with its size
+    manifest = dataset.manifest
     if args.json:
         summary = {k: v for k, v in manifest.items() if k != "shards"}
         summary["shards"] = [{k: v for k, v in s.items() if k != "keys"} for s in manifest["shards"]]
@@ -266,7 +267,7 @@ def cmd_info(args: argparse.Namespace) -> int:
                   f"sha256 {s['sha256'][:16]}")
     if args.verify:
         # Opening checks presence and sizes; verify() checks sha256 and decodes every record.
-        result = ShardDataset(args.dir).verify()
+        result = dataset.verify()
         print(f"verified   {result['records']} records in {result['shards']} shards: "
               "sha256 and record schema OK", file=sys.stdout)
     return 0
@@ -275,6 +276,8 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_preview(args: argparse.Namespace) -> int:
     from core.data.shards import ShardDataset
 
+    if args.out.is_dir():
+        raise N3dmapError(f"--out {args.out} is a directory; give the PNG file to write (e.g. {args.out / 'preview.png'})")
     ds = ShardDataset(args.dir)
     n = len(ds)
     if not -n <= args.index < n:

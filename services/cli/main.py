@@ -3,7 +3,7 @@
 Each area module exposes `register(subparsers)`, adding its parser(s) with `set_defaults(func=...)`.
 Only the area being run is imported (torch, Ray, matplotlib and gRPC make a full import cost seconds);
 the others appear in `n3dmap --help` through their one-line summaries below.
-Errors the user can fix (N3dmapError, CliError, missing files) print one line naming what is wrong
+Errors the user can fix (N3dmapError, CliError, OSError: bad paths, taken ports) print one line naming what is wrong
 and exit 2 — never a traceback.
 """
 
@@ -64,6 +64,11 @@ def _version() -> str:
     return __version__
 
 
+def _one_line(error: BaseException) -> str:
+    """The error's message on one line (some libraries' messages span several)."""
+    return " ".join(str(error).split())
+
+
 def main(argv: list[str] | None = None) -> int:
     from core.errors import N3dmapError
 
@@ -74,15 +79,17 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"{args.command}: not available in this build")
     try:
         result = args.func(args)
-    except (N3dmapError, CliError, FileNotFoundError, NotADirectoryError, PermissionError) as e:
-        print(f"n3dmap {args.command}: error: {e}", file=sys.stderr)
+    except BrokenPipeError:  # `n3dmap ... | head`: the reader left (an OSError, so caught first)
+        sys.stderr.close()
+        return 0
+    except (N3dmapError, CliError, OSError) as e:
+        # OSError: a path the user gave that cannot be made or written (a file where a folder must be,
+        # a read-only or full disk, a port or endpoint that cannot be reached) — their fix, not a bug.
+        print(f"n3dmap {args.command}: error: {_one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"n3dmap {args.command}: interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # `n3dmap ... | head`: the reader left; not an error worth a traceback
-        sys.stderr.close()
-        return 0
     return int(result or 0)
 
 

@@ -34,6 +34,16 @@ CASES = [
     _case("serve-http-port-taken", "serve --bundle {bundle} --http-port {taken} --grpc-port 0", "--http-port {taken}"),
     _case("serve-grpc-port-taken", "serve --bundle {bundle} --http-port 0 --grpc-port {taken}", "--grpc-port {taken}"),
     _case("serve-bundle-missing", "serve --bundle {missing} --http-port 0 --grpc-port 0", "{missing}"),
+    # data: `info` without --verify printed a summary, exit 0, for a dataset missing its shard;
+    # `preview --out DIR` wrote DIR.png and said it wrote DIR; a file in --out's path was a traceback
+    _case("info-missing-shard", "data info {noshard}", "missing shard"),
+    _case("preview-out-is-dir", "data preview {data} --out {empty}", "--out {empty} is a directory"),
+    _case("preview-out-under-file", "data preview {data} --out {file}/p.png", "{file}"),
+    _case("info-missing", "data info {missing}", "{missing}"),
+    _case("info-bad-json", "data info {badjson}", "{badjson}/manifest.json"),
+    _case("generate-episodes-0", "data generate --out {out} --preset tiny --episodes 0", "--episodes"),
+    _case("generate-preset-typo", "data generate --out {out} --preset tiyn --episodes 1", "--preset"),
+    _case("generate-out-under-file", "data generate --out {file}/d --preset tiny --episodes 1", "{file}"),
 ]
 
 
@@ -54,9 +64,11 @@ def fixtures(tmp_path_factory) -> dict[str, str]:
     (root / "empty").mkdir()
     (root / "badjson").mkdir()
     (root / "badjson" / "manifest.json").write_text('{"format": "n3dmap-sh')
+    (root / "noshard").mkdir()
+    (root / "noshard" / "manifest.json").write_text((root / "data" / "manifest.json").read_text())
     return {"data": str(root / "data"), "bundle": str(root / "bundle"), "file": str(root / "file.txt"),
             "missing": str(root / "missing"), "empty": str(root / "empty"), "badjson": str(root / "badjson"),
-            "out": str(root / "out")}
+            "noshard": str(root / "noshard"), "out": str(root / "out")}
 
 
 @pytest.fixture()
