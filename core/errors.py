@@ -13,6 +13,10 @@ class ShapeError(N3dmapError, ValueError):
     """A tensor's shape or dtype is not what a public function expects."""
 
 
+class ConfigError(N3dmapError, ValueError):
+    """An option or config value is unknown or out of range (a preset name, a view index, a rate)."""
+
+
 class BundleError(N3dmapError):
     """A model bundle is missing, corrupt or lacks a module."""
 

@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 
+from services.cli.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 from services.streaming.session import add_zenoh_arguments, options_from_args
 
 
@@ -29,15 +30,15 @@ def register(subparsers) -> None:
     add_zenoh_arguments(bridge, default_listen=True)
     bridge.add_argument("--cameras", default="*", metavar="PATTERN", help="glob of camera ids to serve (default: all)")
     bridge.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default)")
-    bridge.add_argument("--threads", type=int, default=None,
+    bridge.add_argument("--threads", type=positive_int, default=None,
                         help="torch intra-op threads (default: CPU cores − 1, at least 1, at most 8: the "
                              "camera, listener and zenoh need a core; on a loaded 2-core host two threads "
                              "spin against each other and run ~10× slower)")
     bridge.add_argument("--min-score", type=float, default=0.0, help="drop boxes scored below this")
     bridge.add_argument("--bridge-id", default=None, help="id in the liveliness token and status key (default: random)")
-    bridge.add_argument("--duration", type=float, default=None, metavar="S",
+    bridge.add_argument("--duration", type=positive_float, default=None, metavar="S",
                         help="stop after S seconds (default: run until SIGINT/SIGTERM)")
-    bridge.add_argument("--status-every", type=float, default=10.0, metavar="S",
+    bridge.add_argument("--status-every", type=non_negative_float, default=10.0, metavar="S",
                         help="log the accounting every S seconds (0 = never)")
     bridge.set_defaults(func=_run_bridge)
 
@@ -47,16 +48,16 @@ def register(subparsers) -> None:
     source = camera.add_mutually_exclusive_group(required=True)
     source.add_argument("--data", metavar="DIR", help="replay view --view of every record of a shard dataset")
     source.add_argument("--synthetic", action="store_true", help="render the synthetic world live")
-    camera.add_argument("--rate", type=float, default=10.0, metavar="HZ", help="frames per second (default 10)")
-    camera.add_argument("--frames", type=int, default=None, metavar="N", help="stop after N frames (default: endless)")
+    camera.add_argument("--rate", type=positive_float, default=10.0, metavar="HZ", help="frames per second (default 10)")
+    camera.add_argument("--frames", type=positive_int, default=None, metavar="N", help="stop after N frames (default: endless)")
     camera.add_argument("--preset", default="tiny", help="synthetic: preset of the rendered frames (default tiny)")
     camera.add_argument("--seed", type=int, default=0, help="synthetic: first scene seed")
-    camera.add_argument("--episode-frames", type=int, default=8, help="synthetic: frames per scene before a new one")
+    camera.add_argument("--episode-frames", type=positive_int, default=8, help="synthetic: frames per scene before a new one")
     camera.add_argument("--moving-ego", action="store_true", help="synthetic: the ego (and camera) moves")
-    camera.add_argument("--view", type=int, default=0, help="dataset: which view of each record to publish")
+    camera.add_argument("--view", type=non_negative_int, default=0, help="dataset: which view of each record to publish")
     camera.add_argument("--loop", action="store_true", help="dataset: start over at the end")
     camera.add_argument("--encoding", choices=("raw", "png"), default="raw", help="image encoding (default raw)")
-    camera.add_argument("--wait-for-bridge", type=float, default=10.0, metavar="S",
+    camera.add_argument("--wait-for-bridge", type=non_negative_float, default=10.0, metavar="S",
                         help="wait up to S seconds for a bridge before the first frame")
     add_zenoh_arguments(camera, default_listen=False)
     camera.set_defaults(func=_run_camera)
@@ -64,8 +65,8 @@ def register(subparsers) -> None:
     listen = sub.add_parser("listen", help="print moving-object detections as they arrive")
     listen.add_argument("--camera-id", default="*", help="camera to listen to (default: every camera)")
     listen.add_argument("--json", action="store_true", help="one JSON object per line")
-    listen.add_argument("--count", type=int, default=None, metavar="N", help="exit after N messages")
-    listen.add_argument("--timeout", type=float, default=None, metavar="S", help="exit after S seconds of silence")
+    listen.add_argument("--count", type=positive_int, default=None, metavar="N", help="exit after N messages")
+    listen.add_argument("--timeout", type=positive_float, default=None, metavar="S", help="exit after S seconds of silence")
     add_zenoh_arguments(listen, default_listen=False)
     listen.set_defaults(func=_run_listen)
 
@@ -99,8 +100,6 @@ def _run_bridge(args: argparse.Namespace) -> int:
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
     options = _zenoh_options(args, default_listen=True)
-    if args.threads is not None and args.threads < 1:
-        raise CliError(f"--threads must be at least 1, got {args.threads}")
     runtime = Runtime(RuntimeConfig(bundle_dir=args.bundle, device=args.device,
                                     num_threads=args.threads or default_bridge_threads()))
     try:

@@ -17,6 +17,7 @@ from typing import Iterable, Iterator
 import numpy as np
 import zenoh
 
+from core.errors import ConfigError
 from n3dmap.v1 import types_pb2
 from services.inference.codecs import encode_png_depth, encode_png_rgb, numpy_to_tensor
 from services.streaming import keys
@@ -51,7 +52,7 @@ def publish_frames(frames: Iterable[dict], *, camera_id: str, zenoh_options: Zen
     Before the first frame it waits up to `wait_for_bridge_s` for a bridge's liveliness token, so
     a camera started together with its bridge does not publish into the void."""
     if rate_hz <= 0:
-        raise ValueError(f"--rate must be positive, got {rate_hz}")
+        raise ConfigError(f"--rate must be positive, got {rate_hz}")
     session = open_session(zenoh_options)
     publisher_id = uuid.uuid4().hex[:12]
     attachment = f"pub={publisher_id}".encode()

@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from dataclasses import dataclass, field
 
 import zenoh
+
+from core.errors import N3dmapError
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -44,13 +47,22 @@ class ZenohOptions:
         return conf
 
 
+class ZenohSessionError(N3dmapError, ConnectionError):
+    """A zenoh session could not open: a malformed endpoint, a taken listen port, no router to connect to."""
+
+
+# zenoh's messages end in the Rust source location(s) of the error: " at /root/.cargo/.../x.rs:338."
+_RUST_LOCATION = re.compile(r"\s+at \S+\.rs:\d+\.?")
+
+
 def open_session(options: ZenohOptions) -> zenoh.Session:
     """Open a zenoh session; a bad endpoint is a clear error naming it."""
     try:
         return zenoh.open(options.to_config())
     except zenoh.ZError as e:
-        raise ConnectionError(f"cannot open zenoh session (mode={options.mode}, listen={list(options.listen)}, "
-                              f"connect={list(options.connect)}): {e}") from None
+        reason = " ".join(_RUST_LOCATION.sub("", str(e)).split())
+        raise ZenohSessionError(f"cannot open zenoh session (mode={options.mode}, listen={list(options.listen)}, "
+                                f"connect={list(options.connect)}): {reason}") from None
 
 
 def add_zenoh_arguments(parser: argparse.ArgumentParser, *, default_listen: bool) -> None:

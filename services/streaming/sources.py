@@ -12,13 +12,15 @@ from typing import Iterator
 
 import numpy as np
 
+from core.errors import ConfigError
+
 
 def frames_from_records(records, *, view: int = 0) -> Iterator[dict]:
     """Yield the frames of `view` of every record, in time order. Shapes as in the module doc."""
     for record in records:
         T, V = record["rgb"].shape[:2]
         if not 0 <= view < V:
-            raise ValueError(f"--view {view} out of range: the records have {V} views")
+            raise ConfigError(f"--view {view} out of range: the records have {V} views")
         for t in range(T):
             yield {
                 "rgb": np.ascontiguousarray(record["rgb"][t, view]),            # H×W×3
@@ -29,10 +31,18 @@ def frames_from_records(records, *, view: int = 0) -> Iterator[dict]:
 
 
 def dataset_frames(root: str, *, view: int = 0, loop: bool = False) -> Iterator[dict]:
-    """Frames of a shard dataset directory (see core.data.shards)."""
+    """Frames of a shard dataset directory (see core.data.shards). The dataset is opened and `view`
+    checked against the manifest's view counts now, so a bad path or view fails before the camera starts."""
     from core.data.shards import ShardDataset
 
     dataset = ShardDataset(root)
+    views = (dataset.manifest.get("dims") or {}).get("V")  # [min, max] over the records
+    if views and not 0 <= view < views[0]:
+        raise ConfigError(f"--view {view} out of range: the records of {root} have {views[0]} views")
+    return _dataset_frames(dataset, view=view, loop=loop)
+
+
+def _dataset_frames(dataset, *, view: int, loop: bool) -> Iterator[dict]:
     while True:
         yield from frames_from_records(dataset, view=view)
         if not loop:

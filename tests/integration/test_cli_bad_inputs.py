@@ -44,6 +44,18 @@ CASES = [
     _case("generate-episodes-0", "data generate --out {out} --preset tiny --episodes 0", "--episodes"),
     _case("generate-preset-typo", "data generate --out {out} --preset tiyn --episodes 1", "--preset"),
     _case("generate-out-under-file", "data generate --out {file}/d --preset tiny --episodes 1", "{file}"),
+    # stream: ranges in argparse (was: --rate 0 a ValueError traceback, --frames -3 / --count 0 exit 0);
+    # a bad preset or --view and an unreachable zenoh endpoint were tracebacks
+    _case("camera-rate-0", "stream camera --camera-id c --synthetic --rate 0", "--rate"),
+    _case("camera-frames-negative", "stream camera --camera-id c --synthetic --frames -3", "--frames"),
+    _case("camera-episode-frames-0", "stream camera --camera-id c --synthetic --episode-frames 0", "--episode-frames"),
+    _case("listen-count-0", "stream listen --count 0", "--count"),
+    _case("listen-timeout-negative", "stream listen --timeout -1", "--timeout"),
+    _case("camera-view-out-of-range", "stream camera --camera-id c --data {data} --view 9 --wait-for-bridge 0",
+          "--view 9"),
+    _case("camera-preset-typo", "stream camera --camera-id c --synthetic --preset tinny --frames 1", "tinny"),
+    _case("listen-connect-nothing", "stream listen --mode client --connect tcp/127.0.0.1:9 --timeout 5",
+          "tcp/127.0.0.1:9", slow=True),
 ]
 
 
