@@ -23,6 +23,7 @@ import torch
 from core.errors import BundleError
 from core.geometry import se3
 from core.models.egomotion_inputs import fused_input_volume
+from core.pipeline.flow import flow_pair
 from core.pipeline.egomotion import rig_cam_T_ref
 from core.pipeline.moving import MovingObjectsConfig, boxes_from_flow
 
@@ -133,7 +134,13 @@ def moving_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0:
     cam1_T_ref0 = cam1_T_ref1 @ se3.invert(ref0_T_ref1)[:, None]  # B×V×4×4
     f1 = bundle.modules["mapper"](rgb1, depth1, pix_T_cam1, cam1_T_ref0)  # B×F×Z×Y×X, stabilised into ref0
     watch.lap("map_current")
-    raw = bundle.modules["flow"](enc0.features, f1)["flow"]  # B×3×Z×Y×X
+    flow_net, grid = bundle.modules["flow"], bundle.modules["mapper"].grid
+    # Frame 0's egomotion input volume is the flow's v0 too when the module compares input volumes.
+    same_grid = "egomotion" in bundle.modules and bundle.modules["egomotion"].grid == grid
+    v0 = enc0.ego_volume if same_grid else None
+    raw = flow_net(*flow_pair(flow_net, grid, features=(enc0.features, f1), rgb=(rgb0, rgb1), depth=(depth0, depth1),
+                              pix_T_cam=(pix_T_cam0, pix_T_cam1), cam_T_ref0=(cam_T_ref0, cam1_T_ref0),
+                              volumes=(v0, None)))["flow"]  # B×3×Z×Y×X
     flow = raw if enc0.occupancy is None else raw * (enc0.occupancy >= cfg.occupied_above).to(raw.dtype)
     watch.lap("flow")
     found = boxes_from_flow(flow, enc0.occupancy, bundle.modules["mapper"].grid, cfg)

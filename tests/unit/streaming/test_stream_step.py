@@ -52,7 +52,7 @@ def fresh_modules() -> dict:
     occupancy = OccupancyTask.from_preset(TINY).occupancy
     with torch.no_grad():  # a spread of P(occupied) around 0.5, so the occupancy gate keeps some flow
         occupancy.conv.weight.normal_(std=2.0)
-        occupancy.conv.bias.fill_(1.0)
+        occupancy.conv.bias.fill_(-2.0)  # logits of these maps land around +2 without it
     egomotion = EgomotionTask.from_preset(TINY).egomotion
     with torch.no_grad():  # its zero-initialised residual layers too, so the estimate is no identity
         for p in egomotion.parameters():
