@@ -14,6 +14,8 @@ import importlib
 from pathlib import Path
 from typing import Iterator
 
+from services.cli.argtypes import positive_int
+
 # kind -> module with register(kind_subparsers), in `n3dmap eval --help` order.
 EVAL_KINDS: dict[str, str] = {
     "egomotion": "services.cli.eval_tasks.egomotion",
@@ -35,7 +37,7 @@ def add_eval_parser(kinds, name: str, *, help: str, description: str | None = No
         parser.add_argument("--bundle", required=True, metavar="DIR", help="model bundle to evaluate")
     parser.add_argument("--out", required=True, metavar="REPORT_DIR",
                         help="where report.md, metrics.json and the PNG plots go (created)")
-    parser.add_argument("--max-records", type=int, default=None, metavar="N",
+    parser.add_argument("--max-records", type=positive_int, default=None, metavar="N",
                         help="evaluate only the first N records (default: all)")
     parser.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default: auto)")
     return parser
@@ -75,15 +77,21 @@ def iter_records(data_dir: str, max_records: int | None) -> Iterator[dict]:
         yield dataset[i]
 
 
-def load_bundle_for_eval(path: str, device, needed: tuple[str, ...]):
-    """Load the bundle and check it holds the modules an evaluation needs."""
+def load_bundle_for_eval(path: str, device, needed: tuple[str, ...], *, data_dir: str | None = None):
+    """Load the bundle and check it holds the modules an evaluation needs and, given `data_dir`, that
+    the dataset was made for the bundle's preset (its grid and cameras; as `n3dmap train` checks)."""
     from core.bundle import load_bundle
-    from core.errors import BundleError
+    from core.data.shards import load_manifest
+    from core.errors import BundleError, DataError
 
+    data_preset = load_manifest(data_dir).get("preset") if data_dir is not None else None
     bundle = load_bundle(path, device)
     missing = [m for m in needed if m not in bundle.modules]
     if missing:
         raise BundleError(f"--bundle {path}: lacks module(s) {missing} (it holds {sorted(bundle.modules)})")
+    if data_preset is not None and data_preset != bundle.preset.name:
+        raise DataError(f"--data {data_dir} was made with preset {data_preset!r}, but --bundle {path} is a "
+                        f"{bundle.preset.name!r} bundle")
     return bundle
 
 

@@ -54,6 +54,16 @@ CASES = [
     _case("camera-view-out-of-range", "stream camera --camera-id c --data {data} --view 9 --wait-for-bridge 0",
           "--view 9"),
     _case("camera-preset-typo", "stream camera --camera-id c --synthetic --preset tinny --frames 1", "tinny"),
+    # eval: a dataset of another preset than the bundle's was evaluated (exit 0); --per-example 0 was a
+    # reshape traceback; --query-views 9 silently meant view 0 (9 % V)
+    _case("eval-wrong-preset", "eval occupancy --data {small_data} --bundle {bundle} --out {out}/e1 --device cpu",
+          "preset 'small'"),
+    _case("eval-lacks-module", "eval detection --data {data} --bundle {bundle} --out {out}/e2 --device cpu",
+          "lacks module(s) ['detector']"),
+    _case("eval-per-example-0", "eval retrieval --data {data} --bundle {bundle} --out {out}/e3 --per-example 0",
+          "--per-example"),
+    _case("eval-query-view-range", "eval retrieval --data {data} --bundle {bundle} --out {out}/e4 --device cpu "
+          "--query-views 9", "--query-views 9"),
     _case("listen-connect-nothing", "stream listen --mode client --connect tcp/127.0.0.1:9 --timeout 5",
           "tcp/127.0.0.1:9", slow=True),
 ]
@@ -71,6 +81,9 @@ def fixtures(tmp_path_factory) -> dict[str, str]:
     write_dataset(root / "data", (generate_record(TINY, seed=s) for s in (0, 1)), split="val",
                   preset_name="tiny", grid=TINY.grid.to_dict(), generator={"source": "test"}, seed=0,
                   shard_bytes=1 << 30)
+    # the manifest names the preset; its records are never read (the check comes first)
+    write_dataset(root / "small_data", (generate_record(TINY, seed=0),), split="val", preset_name="small",
+                  grid=TINY.grid.to_dict(), generator={"source": "test"}, seed=0, shard_bytes=1 << 30)
     make_bundle(root / "bundle", kinds=("mapper", "occupancy"), note="bad inputs")
     (root / "file.txt").write_text("not a directory\n")
     (root / "empty").mkdir()
@@ -80,7 +93,7 @@ def fixtures(tmp_path_factory) -> dict[str, str]:
     (root / "noshard" / "manifest.json").write_text((root / "data" / "manifest.json").read_text())
     return {"data": str(root / "data"), "bundle": str(root / "bundle"), "file": str(root / "file.txt"),
             "missing": str(root / "missing"), "empty": str(root / "empty"), "badjson": str(root / "badjson"),
-            "noshard": str(root / "noshard"), "out": str(root / "out")}
+            "noshard": str(root / "noshard"), "small_data": str(root / "small_data"), "out": str(root / "out")}
 
 
 @pytest.fixture()

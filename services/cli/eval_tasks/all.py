@@ -52,7 +52,7 @@ def run(args) -> int:
 
     device = resolve_device(args.device)
     next(iter(iter_records(args.data, args.max_records)))  # a bad --data fails here, before any kind runs
-    bundle = load_bundle_for_eval(args.bundle, device, ())
+    bundle = load_bundle_for_eval(args.bundle, device, (), data_dir=args.data)
     have = set(bundle.modules)
     del bundle
     out = Path(args.out)

@@ -21,6 +21,7 @@ import torch
 from core.models.detector_boxes import aabb_to_boxes, boxes_to_aabb
 from core.pipeline.detect import detect, detections_per_item
 from core.tasks.detector import gt_boxes_ref
+from services.cli.argtypes import positive_int
 from services.cli.eval import iter_records, load_bundle_for_eval, resolve_device
 from services.cli.eval_detection import DEFAULT_IOUS, _thresholds, run_detection_files_eval, threshold_key
 from services.cli.eval_tasks.boxes_report import MethodAP, bev_boxes_figure, pr_figure
@@ -44,7 +45,7 @@ def register(kinds) -> None:
     data = parser.add_argument_group("bundle on a dataset")
     data.add_argument("--data", metavar="DIR", help="dataset directory (manifest.json + shards)")
     data.add_argument("--bundle", metavar="DIR", help="model bundle with 'mapper' and 'detector' modules")
-    data.add_argument("--max-records", type=int, default=None, metavar="N",
+    data.add_argument("--max-records", type=positive_int, default=None, metavar="N",
                       help="evaluate only the first N records (default: all)")
     data.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default: auto)")
     parser.add_argument("--out", required=True, metavar="REPORT_DIR", help="where the report goes (created)")
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     if args.classes:
         raise CliError("--classes applies to label files only (the bundle's detector is class-agnostic)")
     device = resolve_device(args.device)
-    bundle = load_bundle_for_eval(args.bundle, device, NEEDS)
+    bundle = load_bundle_for_eval(args.bundle, device, NEEDS, data_dir=args.data)
     report = build_report(bundle, iter_records(args.data, args.max_records), device=device, ious=args.iou,
                           bundle_path=args.bundle, data_path=args.data, max_records=args.max_records)
     out = report.write(args.out)

@@ -81,7 +81,7 @@ def evaluate(bundle, records, *, device, perturb_deg: float, perturb_m: float, s
 
 def run(args) -> int:
     device = resolve_device(args.device)
-    bundle = load_bundle_for_eval(args.bundle, device, ("egomotion",))
+    bundle = load_bundle_for_eval(args.bundle, device, ("egomotion",), data_dir=args.data)
     result = evaluate(bundle, iter_records(args.data, args.max_records), device=device,
                       perturb_deg=args.perturb_deg, perturb_m=args.perturb_m, seed=args.seed, icp=not args.no_icp)
     report = Report(kind="egomotion", title="Egomotion evaluation", bundle=args.bundle, data=args.data,

@@ -63,7 +63,7 @@ def _bev(flow: torch.Tensor) -> np.ndarray:
 
 def run(args) -> int:
     device = resolve_device(args.device)
-    bundle = load_bundle_for_eval(args.bundle, device, ("mapper", "flow"))
+    bundle = load_bundle_for_eval(args.bundle, device, ("mapper", "flow"), data_dir=args.data)
     result = evaluate(bundle, iter_records(args.data, args.max_records), device=device,
                       moving_threshold=args.moving_threshold)
     scores = result["scores"]

@@ -22,6 +22,7 @@ import torch
 from core.data.ground_truth import gt_flow, gt_occupancy
 from core.eval.moving_protocol import camera_setting, gt_moving_boxes, moving_objects_2p5d_rig
 from core.pipeline.moving import DEFAULT_DT, MovingObjectsConfig, boxes_from_flow, moving_objects
+from services.cli.argtypes import non_negative_float, positive_float, positive_int
 from services.cli.eval import add_eval_parser, iter_records, load_bundle_for_eval, resolve_device
 from services.cli.eval_detection import threshold_key
 from services.cli.eval_tasks.boxes_report import MethodAP, bev_boxes_figure, pr_figure
@@ -45,12 +46,12 @@ METHODS = (MODEL, ORACLE_3D, *BASELINES)
 def register(kinds) -> None:
     parser = add_eval_parser(kinds, "moving", help="moving-object PR curves and AP (static/moving camera) "
                                                    "vs the 2.5D baselines")
-    parser.add_argument("--dt", type=float, default=DEFAULT_DT, help="seconds between steps (default %(default)s)")
-    parser.add_argument("--min-speed", type=float, default=1.0, help="m/s above which a voxel moves (3D)")
-    parser.add_argument("--min-voxels", type=int, default=3, help="smallest 3D component kept")
-    parser.add_argument("--flow-threshold-px", type=float, default=1.0, help="2D flow (pixels) that moves (2.5D)")
-    parser.add_argument("--min-pixels", type=int, default=15, help="smallest 2D cluster kept (2.5D)")
-    parser.add_argument("--min-points", type=int, default=10,
+    parser.add_argument("--dt", type=positive_float, default=DEFAULT_DT, help="seconds between steps (default %(default)s)")
+    parser.add_argument("--min-speed", type=non_negative_float, default=1.0, help="m/s above which a voxel moves (3D)")
+    parser.add_argument("--min-voxels", type=positive_int, default=3, help="smallest 3D component kept")
+    parser.add_argument("--flow-threshold-px", type=non_negative_float, default=1.0, help="2D flow (pixels) that moves (2.5D)")
+    parser.add_argument("--min-pixels", type=positive_int, default=15, help="smallest 2D cluster kept (2.5D)")
+    parser.add_argument("--min-points", type=positive_int, default=10,
                         help="depth points an object needs to count as ground truth")
     parser.add_argument("--no-baselines", action="store_true", help="skip the 2.5D baselines (faster)")
     parser.set_defaults(func=run)
@@ -152,7 +153,7 @@ def build_report(bundle, records, *, device, config: MovingObjectsConfig, thresh
 
 def run(args) -> int:
     device = resolve_device(args.device)
-    bundle = load_bundle_for_eval(args.bundle, device, NEEDS)
+    bundle = load_bundle_for_eval(args.bundle, device, NEEDS, data_dir=args.data)
     config = MovingObjectsConfig(dt=args.dt, min_speed=args.min_speed, min_voxels=args.min_voxels)
     report = build_report(bundle, iter_records(args.data, args.max_records), device=device, config=config,
                           threshold_px=args.flow_threshold_px, min_pixels=args.min_pixels,

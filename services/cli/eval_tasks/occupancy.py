@@ -59,7 +59,7 @@ def evaluate(bundle, records, *, device, input_view: int, threshold: float) -> d
 
 def run(args) -> int:
     device = resolve_device(args.device)
-    bundle = load_bundle_for_eval(args.bundle, device, ("mapper", "occupancy"))
+    bundle = load_bundle_for_eval(args.bundle, device, ("mapper", "occupancy"), data_dir=args.data)
     result = evaluate(bundle, iter_records(args.data, args.max_records), device=device,
                       input_view=args.input_view, threshold=args.threshold)
     s = result["scores"]

@@ -18,6 +18,7 @@ import torch
 from core.errors import ShapeError
 from core.eval.retrieval import precision_at_k, retrieval_pool
 from core.eval.retrieval_protocol import retrieval_features_2d, retrieval_features_3d
+from services.cli.argtypes import positive_int
 from services.cli.eval import add_eval_parser, iter_records, load_bundle_for_eval, resolve_device
 from services.cli.eval_tasks.common import record_batch
 from services.reports import Report
@@ -28,9 +29,9 @@ KS = (1, 5, 10)
 
 def register(kinds) -> None:
     parser = add_eval_parser(kinds, "retrieval", help="2D patch and 3D feature-cube retrieval P@1/5/10")
-    parser.add_argument("--per-example", type=int, default=10, help="query/match pairs per example (paper: 10)")
-    parser.add_argument("--patch-2d", type=int, default=5, help="side of a 2D patch in render pixels")
-    parser.add_argument("--cube-3d", type=int, default=3, help="side of a 3D feature cube in voxels")
+    parser.add_argument("--per-example", type=positive_int, default=10, help="query/match pairs per example (paper: 10)")
+    parser.add_argument("--patch-2d", type=positive_int, default=5, help="side of a 2D patch in render pixels")
+    parser.add_argument("--cube-3d", type=positive_int, default=3, help="side of a 3D feature cube in voxels")
     parser.add_argument("--query-views", type=int, nargs="+", default=[0], help="views of the 3D query map")
     parser.add_argument("--target-view", type=int, default=-1, help="view rendered for 2D retrieval (-1: last)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the sampled centres")
@@ -56,6 +57,9 @@ def evaluate(bundle, records, *, device, per_example=10, patch_2d=5, cube_3d=3, 
     for record in records:
         batch = record_batch(record, device)
         T, V = batch["rgb"].shape[1:3]
+        for flag, v in [("--query-views", v) for v in query_views] + [("--target-view", target_view)]:
+            if not -V <= v < V:  # negative counts from the last view
+                raise ShapeError(f"{flag} {v}: the records have {V} views")
         q_views = sorted({v % V for v in query_views})
         c_views = [v for v in range(V) if v not in q_views]
         target = target_view % V
@@ -119,7 +123,7 @@ def build_report(bundle, records, *, device, bundle_path=None, data_path=None, m
 
 def run(args) -> int:
     device = resolve_device(args.device)
-    bundle = load_bundle_for_eval(args.bundle, device, NEEDS)
+    bundle = load_bundle_for_eval(args.bundle, device, NEEDS, data_dir=args.data)
     report = build_report(bundle, iter_records(args.data, args.max_records), device=device, bundle_path=args.bundle,
                           data_path=args.data, max_records=args.max_records, per_example=args.per_example,
                           patch_2d=args.patch_2d, cube_3d=args.cube_3d, query_views=args.query_views,
