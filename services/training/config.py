@@ -76,6 +76,8 @@ class TrainJobConfig:
                 raise TrainConfigError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
         if self.lr is not None and not self.lr > 0:
             raise TrainConfigError(f"--lr must be > 0, got {self.lr}")
+        if self.object_store_mb < 1:
+            raise TrainConfigError(f"--object-store-mb must be >= 1, got {self.object_store_mb}")
         if self.max_failures < -1:
             raise TrainConfigError(f"--max-failures must be >= -1 (-1: retry forever), got {self.max_failures}")
         if self.log_every < 1:

@@ -54,6 +54,17 @@ CASES = [
     _case("camera-view-out-of-range", "stream camera --camera-id c --data {data} --view 9 --wait-for-bridge 0",
           "--view 9"),
     _case("camera-preset-typo", "stream camera --camera-id c --synthetic --preset tinny --frames 1", "tinny"),
+    # train: --input-views 0 / 9 and --object-store-mb 0 trained and exited 0
+    _case("train-input-views-0", "train occupancy --data {data} --run-dir {out}/r1 --input-views 0", "--input-views"),
+    _case("train-input-views-9", "train occupancy --data {data} --run-dir {out}/r2 --input-views 9",
+          "--input-views 9"),
+    _case("train-object-store-0", "train pretrain --data {data} --run-dir {out}/r3 --workers 0 --object-store-mb 0",
+          "--object-store-mb"),
+    _case("train-steps-0", "train pretrain --data {data} --run-dir {out}/r4 --workers 0 --steps 0", "--steps"),
+    _case("train-data-bad-json", "train pretrain --data {badjson} --run-dir {out}/r5 --workers 0",
+          "{badjson}/manifest.json"),
+    _case("train-init-missing", "train egomotion --data {data} --run-dir {out}/r6 --workers 0 --steps 1 "
+          "--init {missing}", "{missing}"),
     # eval: a dataset of another preset than the bundle's was evaluated (exit 0); --per-example 0 was a
     # reshape traceback; --query-views 9 silently meant view 0 (9 % V)
     _case("eval-wrong-preset", "eval occupancy --data {small_data} --bundle {bundle} --out {out}/e1 --device cpu",
