@@ -2,8 +2,9 @@
 `n3dmap <command>: error: ...` naming what is wrong — never a traceback, never a hang.
 
 Table-driven: each case is the argv (with {placeholders} for the fixtures below) and the text the
-error line must contain. Most cases fail in argparse or before any model runs (well under a second
-to a few seconds each); the ones that start a server or a zenoh session are marked slow.
+error line must contain. Most cases fail in argparse or before any model runs (0.1 s for argparse,
+2-4 s where torch is imported); the two that reach out to a Ray job server or a zenoh router that is
+not there are marked slow. The taken-port cases hold a listening socket; no server starts.
 """
 
 from __future__ import annotations
@@ -33,7 +34,6 @@ CASES = [
     _case("serve-max-body-0", "serve --bundle {bundle} --max-body-mb 0", "--max-body-mb"),
     _case("serve-http-port-taken", "serve --bundle {bundle} --http-port {taken} --grpc-port 0", "--http-port {taken}"),
     _case("serve-grpc-port-taken", "serve --bundle {bundle} --http-port 0 --grpc-port {taken}", "--grpc-port {taken}"),
-    _case("serve-bundle-missing", "serve --bundle {missing} --http-port 0 --grpc-port 0", "{missing}"),
     # data: `info` without --verify printed a summary, exit 0, for a dataset missing its shard;
     # `preview --out DIR` wrote DIR.png and said it wrote DIR; a file in --out's path was a traceback
     _case("info-missing-shard", "data info {noshard}", "missing shard"),
@@ -43,7 +43,6 @@ CASES = [
     _case("info-bad-json", "data info {badjson}", "{badjson}/manifest.json"),
     _case("generate-episodes-0", "data generate --out {out} --preset tiny --episodes 0", "--episodes"),
     _case("generate-preset-typo", "data generate --out {out} --preset tiyn --episodes 1", "--preset"),
-    _case("generate-out-under-file", "data generate --out {file}/d --preset tiny --episodes 1", "{file}"),
     # stream: ranges in argparse (was: --rate 0 a ValueError traceback, --frames -3 / --count 0 exit 0);
     # a bad preset or --view and an unreachable zenoh endpoint were tracebacks
     _case("camera-rate-0", "stream camera --camera-id c --synthetic --rate 0", "--rate"),
@@ -60,11 +59,14 @@ CASES = [
           "--input-views 9"),
     _case("train-object-store-0", "train pretrain --data {data} --run-dir {out}/r3 --workers 0 --object-store-mb 0",
           "--object-store-mb"),
-    _case("train-steps-0", "train pretrain --data {data} --run-dir {out}/r4 --workers 0 --steps 0", "--steps"),
     _case("train-data-bad-json", "train pretrain --data {badjson} --run-dir {out}/r5 --workers 0",
           "{badjson}/manifest.json"),
-    _case("train-init-missing", "train egomotion --data {data} --run-dir {out}/r6 --workers 0 --steps 1 "
-          "--init {missing}", "{missing}"),
+    # jobs / bundle / bench: already one-line errors; kept so that they stay so
+    _case("jobs-no-address", "jobs list", "--address"),
+    _case("jobs-address-nothing", "jobs status raysubmit_x --address http://127.0.0.1:9", "http://127.0.0.1:9",
+          slow=True),
+    _case("bundle-truncated-weights", "bundle info {truncated_bundle}", "weights.safetensors"),
+    _case("bench-seeds-0", "bench paper --preset tiny --out {out}/b --seeds 0", "--seeds"),
     # eval: a dataset of another preset than the bundle's was evaluated (exit 0); --per-example 0 was a
     # reshape traceback; --query-views 9 silently meant view 0 (9 % V)
     _case("eval-wrong-preset", "eval occupancy --data {small_data} --bundle {bundle} --out {out}/e1 --device cpu",
@@ -83,19 +85,29 @@ CASES = [
 @pytest.fixture(scope="module")
 def fixtures(tmp_path_factory) -> dict[str, str]:
     """Paths the cases refer to: a 2-record tiny dataset, bundles, and broken look-alikes."""
+    import torch
+
+    from core.bundle import save_bundle
     from core.data.shards import write_dataset
     from core.presets import TINY
     from core.synthetic import generate_record
-    from tests.integration.serve_support import make_bundle
+    from core.tasks.occupancy import OccupancyTask
 
     root = tmp_path_factory.mktemp("bad_inputs")
-    write_dataset(root / "data", (generate_record(TINY, seed=s) for s in (0, 1)), split="val",
-                  preset_name="tiny", grid=TINY.grid.to_dict(), generator={"source": "test"}, seed=0,
-                  shard_bytes=1 << 30)
+    records = [generate_record(TINY, seed=s) for s in (0, 1)]
+    write_dataset(root / "data", records, split="val", preset_name="tiny", grid=TINY.grid.to_dict(),
+                  generator={"source": "test"}, seed=0, shard_bytes=1 << 30)
     # the manifest names the preset; its records are never read (the check comes first)
-    write_dataset(root / "small_data", (generate_record(TINY, seed=0),), split="val", preset_name="small",
-                  grid=TINY.grid.to_dict(), generator={"source": "test"}, seed=0, shard_bytes=1 << 30)
-    make_bundle(root / "bundle", kinds=("mapper", "occupancy"), note="bad inputs")
+    write_dataset(root / "small_data", records[:1], split="val", preset_name="small", grid=TINY.grid.to_dict(),
+                  generator={"source": "test"}, seed=0, shard_bytes=1 << 30)
+    torch.manual_seed(0)
+    task = OccupancyTask.from_preset(TINY)
+    save_bundle(root / "bundle", modules={"mapper": task.mapper, "occupancy": task.occupancy}, preset=TINY,
+                provenance={"test": "bad inputs"}, metrics={})
+    (root / "truncated_bundle").mkdir()
+    (root / "truncated_bundle" / "bundle.json").write_text((root / "bundle" / "bundle.json").read_text())
+    weights = (root / "bundle" / "weights.safetensors").read_bytes()
+    (root / "truncated_bundle" / "weights.safetensors").write_bytes(weights[:len(weights) // 2])
     (root / "file.txt").write_text("not a directory\n")
     (root / "empty").mkdir()
     (root / "badjson").mkdir()
@@ -104,7 +116,8 @@ def fixtures(tmp_path_factory) -> dict[str, str]:
     (root / "noshard" / "manifest.json").write_text((root / "data" / "manifest.json").read_text())
     return {"data": str(root / "data"), "bundle": str(root / "bundle"), "file": str(root / "file.txt"),
             "missing": str(root / "missing"), "empty": str(root / "empty"), "badjson": str(root / "badjson"),
-            "noshard": str(root / "noshard"), "small_data": str(root / "small_data"), "out": str(root / "out")}
+            "noshard": str(root / "noshard"), "small_data": str(root / "small_data"),
+            "truncated_bundle": str(root / "truncated_bundle"), "out": str(root / "out")}
 
 
 @pytest.fixture()
