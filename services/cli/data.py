@@ -83,7 +83,7 @@ def register(subparsers) -> None:
 
     k = isub.add_parser("kitti", help="KITTI object (training/{image_2,velodyne,calib,label_2}, ImageSets)")
     k.add_argument("src", type=Path, help="KITTI object root (holding training/ and ImageSets/)")
-    k.add_argument("--resize", type=int, nargs=2, metavar=("H", "W"), default=None,
+    k.add_argument("--resize", type=_positive_int, nargs=2, metavar=("H", "W"), default=None,
                    help="resample images (and render depth) at H×W so that all records share one size")
     _import_common(k)
     k.set_defaults(func=cmd_import_kitti)
