@@ -77,28 +77,9 @@ def cpu_seconds(pid: int) -> float:
 
 
 def fresh_bundle(preset_name: str, out: Path) -> Path:
-    import torch
+    from tests.stream_bundles import random_stream_bundle
 
-    from core.bundle import save_bundle
-    from core.presets import get_preset
-    from core.tasks.egomotion import EgomotionTask
-    from core.tasks.flow import FlowTask
-    from core.tasks.occupancy import OccupancyTask
-
-    torch.manual_seed(0)
-    preset = get_preset(preset_name)
-    flow_task = FlowTask.from_preset(preset)
-    occupancy = OccupancyTask.from_preset(preset).occupancy
-    with torch.no_grad():
-        for p in flow_task.flow.parameters():
-            if p.dim() > 1 and not p.any():
-                p.normal_(std=0.3)
-        occupancy.conv.weight.normal_(std=2.0)
-        occupancy.conv.bias.fill_(1.0)
-    modules = {"mapper": flow_task.mapper, "flow": flow_task.flow, "occupancy": occupancy,
-               "egomotion": EgomotionTask.from_preset(preset).egomotion}
-    save_bundle(out, modules=modules, preset=preset, provenance={"bench": "stream"}, metrics={})
-    return out
+    return random_stream_bundle(preset_name, out, provenance={"bench": "stream"})
 
 
 def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:

@@ -99,27 +99,9 @@ def wait_for(predicate, timeout_s: float, what: str):
 
 
 def make_bundle(out: Path) -> Path:
-    """Fresh tiny modules; the flow's zero-initialised last convs get random weights (an untrained
-    flow module predicts exactly zero) and the occupancy head a bias that keeps part of the grid."""
-    from core.bundle import save_bundle
-    from core.presets import TINY
-    from core.tasks.egomotion import EgomotionTask
-    from core.tasks.flow import FlowTask
-    from core.tasks.occupancy import OccupancyTask
+    from tests.stream_bundles import random_stream_bundle
 
-    torch.manual_seed(0)
-    flow_task = FlowTask.from_preset(TINY)
-    occupancy = OccupancyTask.from_preset(TINY).occupancy
-    with torch.no_grad():
-        for p in flow_task.flow.parameters():
-            if p.dim() > 1 and not p.any():
-                p.normal_(std=0.3)
-        occupancy.conv.weight.normal_(std=2.0)
-        occupancy.conv.bias.fill_(1.0)
-    modules = {"mapper": flow_task.mapper, "flow": flow_task.flow, "occupancy": occupancy,
-               "egomotion": EgomotionTask.from_preset(TINY).egomotion}
-    save_bundle(out, modules=modules, preset=TINY, provenance={"test": "stream bridge"}, metrics={})
-    return out
+    return random_stream_bundle("tiny", out, provenance={"test": "stream bridge"})
 
 
 class Net:
