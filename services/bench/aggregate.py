@@ -55,11 +55,15 @@ def retrieval_table(per_seed: dict, arms) -> dict:
 
 
 def flow_table(per_seed: dict, arms) -> dict:
-    """Rows "zero-motion" and one per arm (the model with free voxels zeroed): full/static/moving L1 EPE."""
+    """Rows "zero-motion", one per arm (flow over that arm's features, free voxels zeroed) and, when run,
+    "input volumes" (flow over the fused input volumes): full/static/moving L1 EPE."""
     cols = {"full": "epe_l1_full", "static": "epe_l1_static", "moving": "epe_l1_moving", "epe3d": "epe3d"}
     rows = {"zero-motion": {c: over_seeds(per_seed, "flow", arms[-1], "zero_motion", k) for c, k in cols.items()}}
     for arm in arms:
         rows[arm] = {c: over_seeds(per_seed, "flow", arm, "model", k) for c, k in cols.items()}
+    if any(_get(r, "flow", "volume") for r in per_seed.values()):
+        # n3dmap's default flow module, over the fused input volumes instead of an arm's features
+        rows["input volumes"] = {c: over_seeds(per_seed, "flow", "volume", "model", k) for c, k in cols.items()}
     return rows
 
 

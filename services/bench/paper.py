@@ -8,6 +8,7 @@
                                         fine-tuned features, per label budget (trained on the first N
                                         records, RUN_DIR/labelled_data, as `train detector --labels N`)
   seed<s>/flow_<arm>                    3D flow over the frozen features of each pretrained arm
+  seed<s>/flow_volume                   3D flow over the fused input volumes (n3dmap's default)
   seed<s>/egomotion                     the egomotion module
   seed<s>/eval/<kind>/<name>            one metrics.json per evaluation (detection mAP, retrieval,
                                         occupancy, flow EPE, egomotion vs ICP, moving objects)
@@ -33,6 +34,7 @@ from services.bench.stages import StageRunner, write_json
 TRAIN_MARKER = "bundle/bundle.json"
 EVAL_MARKER = "metrics.json"
 DATA_MARKER = "manifest.json"
+VOLUME_FLOW = "volume"   # the flow stage over fused input volumes (n3dmap's default), beside the per-arm ones
 
 
 def budget_name(budget: int | None) -> str:
@@ -166,11 +168,17 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
         result["occupancy"][arm] = evaluate(f"occupancy/{arm}", lambda a=arm: eval_occupancy.evaluate(
             load_bundle(pretrained[a], device), test_records, device=device, input_view=0, threshold=0.5)["scores"])
 
-    # 3D flow over the frozen features of each pretrained arm, scored against the zero-motion row.
+    # 3D flow over the frozen features of each pretrained arm (the paper's protocol: the arms differ only
+    # in the maps the flow module compares), and n3dmap's default flow, which compares the fused input
+    # volumes (it does not depend on the pretraining; the contrastive bundle gives it the occupancy
+    # head). All are scored against the zero-motion row.
     from services.cli.eval_tasks import flow as eval_flow
-    flows = {arm: train(f"flow_{arm}", task="flow", steps=steps.flow,
+    flows = {arm: train(f"flow_{arm}", task="flow", steps=steps.flow, task_options={"inputs": "features"},
                         init_bundle=pretrained[arm], freeze=("mapper",)) for arm in PRETRAINED_ARMS}
-    for arm in PRETRAINED_ARMS:
+    flows[VOLUME_FLOW] = train(f"flow_{VOLUME_FLOW}", task="flow", steps=steps.flow,
+                               task_options={"inputs": "volume"}, init_bundle=pretrained["contrastive"],
+                               freeze=("mapper",))
+    for arm in (*PRETRAINED_ARMS, VOLUME_FLOW):
         result["flow"][arm] = evaluate(f"flow/{arm}", lambda a=arm: eval_flow.evaluate(
             load_bundle(flows[a], device), test_records, device=device, moving_threshold=1e-3)["scores"])
 
@@ -188,15 +196,20 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
                 "gt_motion": {k: float(v.mean()) for k, v in res["gt_motion"].items()}}
     result["egomotion"] = evaluate("egomotion/moving_camera", egomotion_metrics)
 
-    # Moving objects: each arm's flow bundle (stabilised with the poses), the contrastive one also with
-    # the trained egomotion module; the 2.5D baselines come with the first.
+    # Moving objects: each flow bundle stabilised with the poses, the contrastive-feature and the
+    # input-volume ones also with the trained egomotion module; the 2.5D baselines come with the first.
     def moving_metrics() -> dict:
         ego = load_bundle(ego_dir, device).modules["egomotion"]
-        contrastive = load_bundle(flows["contrastive"], device)
-        with_ego = Bundle(preset=contrastive.preset, modules={**contrastive.modules, "egomotion": ego},
-                          meta=contrastive.meta, path=contrastive.path)
-        bundles = {"contrastive, GT egomotion": contrastive, "contrastive, egomotion module": with_ego,
-                   "regression, GT egomotion": load_bundle(flows["regression"], device)}
+
+        def with_egomotion(bundle: Bundle) -> Bundle:
+            return Bundle(preset=bundle.preset, modules={**bundle.modules, "egomotion": ego}, meta=bundle.meta,
+                          path=bundle.path)
+        contrastive, volume = load_bundle(flows["contrastive"], device), load_bundle(flows[VOLUME_FLOW], device)
+        bundles = {"contrastive, GT egomotion": contrastive,
+                   "contrastive, egomotion module": with_egomotion(contrastive),
+                   "regression, GT egomotion": load_bundle(flows["regression"], device),
+                   "input volumes, GT egomotion": volume,
+                   "input volumes, egomotion module": with_egomotion(volume)}
         return evaluations.moving(bundles, test_records, device=device, iou=config.moving_iou,
                                   threshold_px=config.flow2d_threshold_px, min_pixels=config.flow2d_min_pixels)
     result["moving"] = evaluate("moving/all", moving_metrics)

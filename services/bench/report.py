@@ -131,8 +131,11 @@ def _retrieval_section(report: Report, ret: dict) -> None:
 def _flow_section(report: Report, flow: dict) -> None:
     report.heading("3D flow: mean endpoint error in egomotion-stabilised scenes")
     report.text("L1 endpoint error in voxels (test pairs, stabilised with the true poses), over all voxels, "
-                "static voxels and moving voxels; flow trained over the frozen features of each pretraining, "
-                "free voxels zeroed by the occupancy head; the zero-motion row predicts no motion anywhere.")
+                "static voxels and moving voxels; the paper's protocol: flow trained over the frozen features "
+                "of each pretraining (rows contrastive and regression), free voxels zeroed by the occupancy head. "
+                "The row 'input volumes' is n3dmap's default flow module, which compares the fused "
+                "occupancy+RGB input volumes instead of feature maps (README: small feature maps do not carry "
+                "object motion); the zero-motion row predicts no motion anywhere.")
     report.table(["method", "full", "static", "moving", "EPE3D (occupied)"],
                  [[row, *[agg.fmt(flow[row][c]) for c in ("full", "static", "moving", "epe3d")]] for row in flow])
 
@@ -141,8 +144,8 @@ def _moving_section(report: Report, mov: dict, config: BenchConfig) -> None:
     report.heading("Unsupervised 3D moving-object detection")
     report.text(f"AP at 3D IoU {config.moving_iou} (oriented boxes) of the moving objects of each test pair, "
                 f"split by camera: static-camera pairs {agg.fmt(mov['pairs_static'], 0)}, moving-camera pairs "
-                f"{agg.fmt(mov['pairs_moving'], 0)}. Ours: 3D flow on the map (flow bundle of each pretraining), "
-                "stabilised with the true poses or with the egomotion module; 2.5D: 2D optical flow (Farneback; "
+                f"{agg.fmt(mov['pairs_moving'], 0)}. Ours: 3D flow over each pretraining's features, or over the "
+                "input volumes (n3dmap's default), stabilised with the true poses or with the egomotion module; 2.5D: 2D optical flow (Farneback; "
                 "or the true 2D flow for the oracle), thresholded, clustered, lifted with depth, per view.")
     for setting in ("static", "moving"):
         rows = [[m, agg.fmt(v["ap"]), agg.fmt(v["gt_boxes"], 0)] for m, v in mov[setting].items()]

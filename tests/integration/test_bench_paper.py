@@ -85,6 +85,12 @@ def test_metrics_json_has_every_key(bench_run):
     for setting in ("static", "moving"):
         assert "2.5D Farneback" in metrics["moving"][setting]
         assert "contrastive, GT egomotion" in metrics["moving"][setting]
+        assert "input volumes, egomotion module" in metrics["moving"][setting]
+    # The arms' flow modules compare their features (the paper's protocol); the extra row compares volumes.
+    assert {"contrastive", "regression", "input volumes"} <= set(metrics["flow"])
+    for arm, inputs in (("contrastive", "features"), ("regression", "features"), ("volume", "volume")):
+        bundle = json.loads((out / "work" / "seed0" / f"flow_{arm}" / "bundle" / "bundle.json").read_text())
+        assert bundle["modules"]["flow"]["config"]["inputs"] == inputs
     # Every stage left its timing, and the per-seed raw results are kept.
     assert all(s >= 0 for s in metrics["stage_seconds"].values())
     assert "0" in metrics["per_seed"]

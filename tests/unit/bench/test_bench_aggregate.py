@@ -28,6 +28,17 @@ def test_flow_table_takes_zero_motion_and_model_rows():
     rows = flow_table(per_seed, ("regression", "contrastive"))
     assert rows["zero-motion"]["moving"]["mean"] == 7.0 and rows["contrastive"]["moving"]["mean"] == 3.5
     assert rows["regression"]["moving"]["std"] == 0.0 and rows["contrastive"]["full"]["mean"] is None
+    assert "input volumes" not in rows   # only when the volume-flow stage ran
+
+
+def test_flow_table_adds_the_input_volume_row_when_present():
+    per_seed = {"0": {"flow": {"contrastive": {"zero_motion": {"epe_l1_moving": 6.0}, "model": {"epe_l1_moving": 3.0}},
+                               "volume": {"zero_motion": {"epe_l1_moving": 6.0}, "model": {"epe_l1_moving": 2.0}}}},
+                "1": {"flow": {"contrastive": {"zero_motion": {"epe_l1_moving": 8.0}, "model": {"epe_l1_moving": 4.0}},
+                               "volume": {"zero_motion": {"epe_l1_moving": 8.0}, "model": {"epe_l1_moving": 1.0}}}}}
+    rows = flow_table(per_seed, ("contrastive",))
+    assert list(rows) == ["zero-motion", "contrastive", "input volumes"]
+    assert rows["input volumes"]["moving"]["mean"] == 1.5 and rows["input volumes"]["moving"]["n"] == 2
 
 
 def _s(x):
