@@ -25,13 +25,14 @@ from core.errors import check_shape
 from core.geometry.grid import GridConfig
 from core.models.detector_anchors import anchor_grid, coarse_shape
 from core.models.detector_boxes import aabb_to_boxes, decode_deltas, nms_aabb
+from core.models.conv3d import Conv3d
 
 # Axis-aligned bounding boxes of a car (~4.3 m × 1.65 m × 1.9 m) heading along x, along z, and at ±45°.
 CAR_ANCHOR_SIZES: tuple[tuple[float, float, float], ...] = ((4.3, 1.65, 1.9), (1.9, 1.65, 4.3), (4.0, 1.65, 4.0))
 
 
 def _conv3d(c_in: int, c_out: int) -> nn.Sequential:
-    return nn.Sequential(nn.Conv3d(c_in, c_out, 3, padding=1, bias=False), nn.BatchNorm3d(c_out),
+    return nn.Sequential(Conv3d(c_in, c_out, 3, padding=1, bias=False), nn.BatchNorm3d(c_out),
                          nn.LeakyReLU(0.1))
 
 

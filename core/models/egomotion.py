@@ -10,7 +10,7 @@ Per scale s (coarse to fine, each an average-pooled copy of the module's OWN fea
 2. the ORIGINAL pooled query features are warped ONCE by each composed candidate (inverse-compositional:
    never a warped volume again, so interpolation error does not accumulate);
 3. a 3D cross-correlation cost volume against the reference over displacements within ±radius voxels,
-   averaged over space -> one score per (rotation, displacement), standardised per example;
+   averaged over space (computed directly as that mean: core.models.cost_volume.mean_correlation_3d) -> one score per (rotation, displacement), standardised per example;
 4. a 6-DoF update δ = (ω rad axis-angle, t metres) expressed in ref0, E ← exp(δ) · E, made of
    a) a soft-argmax over the scores (a correlator that works from the first step): with p = softmax(β·s)
       over all (rotation i, displacement d), ω = Σ p_i·(Euler offsets of R_i) (small angles, so Euler ≈
@@ -42,7 +42,7 @@ from core.errors import check_shape
 from core.geometry import se3
 from core.geometry.grid import GridConfig
 from core.geometry.resample import warp_rigid
-from core.models.cost_volume import cross_correlation_3d, displacements
+from core.models.cost_volume import displacements, mean_correlation_3d
 from core.models.egomotion_rotations import candidate_angles, candidate_rotations
 from core.models.encoder3d import Encoder3D
 
@@ -135,10 +135,9 @@ class EgomotionNet(nn.Module):
         composed = candidates.unsqueeze(0) @ estimate.unsqueeze(1)  # B×R×4×4: R_i · E
         q = query.unsqueeze(1).expand(B, R, *query.shape[1:]).reshape(B * R, *query.shape[1:])  # (B·R)×C×Zs×Ys×Xs
         warped = self.warp_query(q, composed.reshape(B * R, 4, 4), grid)  # (B·R)×C×Zs×Ys×Xs
-        ref = reference.unsqueeze(1).expand_as(warped.reshape(B, R, *warped.shape[1:]))
-        ref = ref.reshape(B * R, *reference.shape[1:])  # (B·R)×C×Zs×Ys×Xs
-        cost = cross_correlation_3d(ref, warped, self.radius)  # (B·R)×D×Zs×Ys×Xs
-        s = cost.mean(dim=(2, 3, 4)).reshape(B, -1)  # B×(R·D)
+        # = cross_correlation_3d(reference, warped_r).mean over space, for every r, in one GEMM
+        s = mean_correlation_3d(reference, warped.reshape(B, R, *warped.shape[1:]), self.radius)  # B×R×D
+        s = s.reshape(B, -1)  # B×(R·D), rotation-major as the candidates × displacements
         return (s - s.mean(1, keepdim=True)) / (s.std(1, keepdim=True) + 1e-6)
 
     def update_units(self, index: int, grid: GridConfig) -> torch.Tensor:

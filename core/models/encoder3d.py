@@ -20,6 +20,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from core.errors import check_shape
+from core.models.normalize import l2_normalize_channels
+from core.models.conv3d import Conv3d
 
 
 def _conv_block(conv: nn.Module, channels: int) -> nn.Sequential:
@@ -35,12 +37,12 @@ class Encoder3D(nn.Module):
         self.in_channels, self.width, self.out_channels = in_channels, width, out_channels
         self.normalize = normalize
         C = width
-        self.down1 = _conv_block(nn.Conv3d(in_channels, C, 4, stride=2, padding=1), C)
-        self.down2 = _conv_block(nn.Conv3d(C, 2 * C, 4, stride=2, padding=1), 2 * C)
-        self.down3 = _conv_block(nn.Conv3d(2 * C, 4 * C, 4, stride=2, padding=1), 4 * C)
+        self.down1 = _conv_block(Conv3d(in_channels, C, 4, stride=2, padding=1), C)
+        self.down2 = _conv_block(Conv3d(C, 2 * C, 4, stride=2, padding=1), 2 * C)
+        self.down3 = _conv_block(Conv3d(2 * C, 4 * C, 4, stride=2, padding=1), 4 * C)
         self.up1 = _conv_block(nn.ConvTranspose3d(4 * C, 2 * C, 4, stride=2, padding=1), 2 * C)
         self.up2 = _conv_block(nn.ConvTranspose3d(4 * C, C, 4, stride=2, padding=1), C)
-        self.out = nn.Conv3d(2 * C, out_channels, 1)
+        self.out = Conv3d(2 * C, out_channels, 1)
 
     def config(self) -> dict:
         return {"in_channels": self.in_channels, "width": self.width,
@@ -61,5 +63,5 @@ class Encoder3D(nn.Module):
         feat = F.interpolate(feat, size=x0.shape[-3:], mode="trilinear", align_corners=False)
         feat = feat[..., :Z, :Y, :X]               # B×F×Z×Y×X (crop the padding)
         if self.normalize:
-            feat = F.normalize(feat, dim=1)
+            feat = l2_normalize_channels(feat)
         return feat

@@ -48,6 +48,8 @@ from torch import nn
 from core.errors import check_shape
 from core.geometry.resample import warp_flow
 from core.models.cost_volume import cross_correlation_3d, soft_argmax_displacement
+from core.models.normalize import l2_normalize_channels
+from core.models.conv3d import Conv3d
 
 
 FLOW_INPUTS = ("features", "volume")
@@ -111,15 +113,15 @@ class Flow3D(nn.Module):
         self.in_channels, self.channels, self.levels, self.hidden = in_channels, channels, levels, hidden
         self.radius = tuple(int(r) for r in radius)
         self.features = nn.Sequential(
-            nn.Conv3d(in_channels, channels, 3, padding=1), nn.LeakyReLU(0.1),
-            nn.Conv3d(channels, channels, 3, padding=1))
+            Conv3d(in_channels, channels, 3, padding=1), nn.LeakyReLU(0.1),
+            Conv3d(channels, channels, 3, padding=1))
         n_disp = (2 * self.radius[0] + 1) * (2 * self.radius[1] + 1) * (2 * self.radius[2] + 1)
         self.decoders = nn.ModuleList()
         for _ in range(levels):
             dec = nn.Sequential(
-                nn.Conv3d(n_disp + channels + 3, hidden, 3, padding=1), nn.LeakyReLU(0.1),
-                nn.Conv3d(hidden, hidden, 3, padding=1), nn.LeakyReLU(0.1),
-                nn.Conv3d(hidden, 3, 3, padding=1))
+                Conv3d(n_disp + channels + 3, hidden, 3, padding=1), nn.LeakyReLU(0.1),
+                Conv3d(hidden, hidden, 3, padding=1), nn.LeakyReLU(0.1),
+                Conv3d(hidden, 3, 3, padding=1))
             nn.init.zeros_(dec[-1].weight)
             nn.init.zeros_(dec[-1].bias)
             self.decoders.append(dec)
@@ -156,7 +158,7 @@ class Flow3D(nn.Module):
                 up = upsample_flow(flow, sizes[level])  # B×3×z×y×x
                 warped = warp_flow(c1, up)
             if self.unit_cost:
-                raw = cross_correlation_3d(F.normalize(c0, dim=1), F.normalize(warped, dim=1), self.radius)  # cosines
+                raw = cross_correlation_3d(l2_normalize_channels(c0), l2_normalize_channels(warped), self.radius)  # cosines
             else:
                 raw = cross_correlation_3d(c0, warped, self.radius, normalize=True)
             cost = F.leaky_relu(raw, 0.1)  # B×D×z×y×x
@@ -167,7 +169,7 @@ class Flow3D(nn.Module):
         if self.refine and self.finest > 0:
             up = upsample_flow(flow, sizes[0])  # B×3×Z×Y×X
             c0, c1 = pyramid[0][:B], pyramid[0][B:]  # B×C×Z×Y×X each
-            raw = cross_correlation_3d(F.normalize(c0, dim=1), F.normalize(warp_flow(c1, up), dim=1), self.radius)
+            raw = cross_correlation_3d(l2_normalize_channels(c0), l2_normalize_channels(warp_flow(c1, up)), self.radius)
             centre = raw.shape[1] // 2  # d = 0 (z-major order, see core.models.cost_volume.displacements)
             raw = torch.cat([raw[:, :centre], raw[:, centre:centre + 1] + self.refine_zero_bias, raw[:, centre + 1:]], 1)
             flow = up + soft_argmax_displacement(raw, self.radius, self.log_beta[-1].exp())  # B×3×Z×Y×X

@@ -12,13 +12,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from core.errors import check_shape
 from core.geometry.grid import GridConfig
 from core.models.encoder3d import Encoder3D
 from core.models.input_volume import input_volume
+from core.models.normalize import l2_normalize_channels
 
 
 def masked_average(features: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
@@ -29,7 +29,7 @@ def masked_average(features: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:
     total = masks.sum(dim=1, keepdim=True)                       # B×1×1×Z×Y×X
     weights = torch.where(total > 0, masks, torch.ones_like(masks))  # B×V×1×Z×Y×X
     mean = (features * weights).sum(dim=1) / weights.sum(dim=1)  # B×F×Z×Y×X
-    return F.normalize(mean, dim=1)
+    return l2_normalize_channels(mean)
 
 
 @dataclass
@@ -50,7 +50,7 @@ class RunningMap:
 
     def features(self) -> torch.Tensor:
         """Current map B×F×Z×Y×X (unit norm where observed, 0 where never observed)."""
-        return F.normalize(self.feature_sum / self.weight.clamp(min=1e-6), dim=1)
+        return l2_normalize_channels(self.feature_sum / self.weight.clamp(min=1e-6))
 
 
 class Mapper(nn.Module):

@@ -9,10 +9,10 @@ half image resolution.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from core.errors import check_shape
+from core.models.normalize import l2_normalize_channels
 
 
 class ResidualBlock2D(nn.Module):
@@ -57,4 +57,4 @@ class Net2D(nn.Module):
         # contiguous(): torch 2.13 CPU segfaults in the backward of a strided 1×1 conv on a
         # channels-last input (what a permuted H×W×3 image is).
         emb = self.out(self.block2(self.block1((image - 0.5).contiguous())))
-        return F.normalize(emb, dim=1) if self.normalize else emb
+        return l2_normalize_channels(emb) if self.normalize else emb

@@ -20,6 +20,8 @@ from torch import nn
 from core.errors import ShapeError, check_shape
 from core.geometry.frustum import frustum_resample
 from core.geometry.grid import GridConfig
+from core.models.normalize import l2_normalize_channels
+from core.models.conv3d import Conv3d
 
 
 class Projector(nn.Module):
@@ -35,7 +37,7 @@ class Projector(nn.Module):
         self.in_channels, self.out_channels = in_channels, out_channels
         self.depth_planes, self.depth_min, self.depth_max, self.pool = depth_planes, depth_min, depth_max, pool
         self.hidden3d, self.hidden2d, self.normalize = hidden3d, hidden2d, normalize
-        self.conv3d = nn.Sequential(nn.Conv3d(in_channels, hidden3d, 3, padding=1),
+        self.conv3d = nn.Sequential(Conv3d(in_channels, hidden3d, 3, padding=1),
                                     nn.LeakyReLU(0.1, inplace=True), nn.BatchNorm3d(hidden3d))
         self.conv2d = nn.Sequential(nn.Conv2d(hidden3d * (depth_planes // pool), hidden2d, 3, padding=1),
                                     nn.LeakyReLU(0.1, inplace=True), nn.BatchNorm2d(hidden2d))
@@ -65,4 +67,4 @@ class Projector(nn.Module):
         x = self.conv3d(x)                                         # B×H3×D/8×H×W
         x = x.reshape(B, -1, H, W)                                 # B×(H3·D/8)×H×W
         emb = self.out(self.conv2d(x))                             # B×E×H×W
-        return F.normalize(emb, dim=1) if self.normalize else emb
+        return l2_normalize_channels(emb) if self.normalize else emb

@@ -97,8 +97,8 @@ def moving_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0:
     Returns {"boxes": B×K×7 in ref0, "scores": B×K, "valid": B×K, "velocities": B×K×3 m/s, "flow":
     B×3×Z×Y×X, "ref0_T_ref1": B×4×4 used to stabilise, "cam0_T_cam1": B×4×4 (the egomotion route's
     answer; only with an egomotion module), "current": FrameEncoding of frame 1 (its ego volume only)}.
-    `timings` (a dict) receives seconds per stage: ego_volume, map_previous, egomotion, map_current,
-    flow, boxes.
+    `timings` (a dict) receives seconds per stage: ego_volume, map_previous, egomotion, map_current
+    (only for a flow module that compares feature maps), flow, boxes.
     """
     _check_modules(bundle)
     if stabilize is None:
@@ -132,9 +132,11 @@ def moving_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0:
         ref1 = world_T_cam1[:, 0] if world_T_ref1 is None else world_T_ref1
         ref0_T_ref1 = se3.compose(se3.invert(ref0), ref1)
     cam1_T_ref0 = cam1_T_ref1 @ se3.invert(ref0_T_ref1)[:, None]  # B×V×4×4
-    f1 = bundle.modules["mapper"](rgb1, depth1, pix_T_cam1, cam1_T_ref0)  # B×F×Z×Y×X, stabilised into ref0
-    watch.lap("map_current")
     flow_net, grid = bundle.modules["flow"], bundle.modules["mapper"].grid
+    f1 = None
+    if flow_net.inputs != "volume":  # a volume-input flow module never reads frame 1's map: skip the mapper
+        f1 = bundle.modules["mapper"](rgb1, depth1, pix_T_cam1, cam1_T_ref0)  # B×F×Z×Y×X, stabilised into ref0
+        watch.lap("map_current")
     # Frame 0's egomotion input volume is the flow's v0 too when the module compares input volumes.
     same_grid = "egomotion" in bundle.modules and bundle.modules["egomotion"].grid == grid
     v0 = enc0.ego_volume if same_grid else None

@@ -2,7 +2,7 @@
 
 import torch
 
-from core.models.cost_volume import cross_correlation_3d, displacements
+from core.models.cost_volume import cross_correlation_3d, displacements, mean_correlation_3d
 from core.models.egomotion_rotations import candidate_rotations
 from core.geometry import se3
 
@@ -30,6 +30,33 @@ def test_cost_volume_matches_slow_reference():
     assert fast.shape == (2, 3 * 3 * 5, 3, 2, 4)
     torch.testing.assert_close(fast, _slow_cost(f0, f1, r), rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(cross_correlation_3d(f0, f1, r, normalize=True), fast / 3)
+
+
+def test_mean_correlation_matches_the_slow_cost_averaged_over_space():
+    g = torch.Generator().manual_seed(2)
+    ref = torch.randn(2, 3, 3, 2, 4, generator=g, dtype=torch.float64)
+    queries = torch.randn(2, 5, 3, 3, 2, 4, generator=g, dtype=torch.float64)
+    r = (1, 1, 2)
+    fast = mean_correlation_3d(ref, queries, r)  # 2×5×45
+    assert fast.shape == (2, 5, 45)
+    for b in range(2):
+        for i in range(5):
+            slow = _slow_cost(ref[b:b + 1].float(), queries[b:b + 1, i].float(), r).mean((2, 3, 4))[0]  # D
+            torch.testing.assert_close(fast[b, i].float(), slow, rtol=1e-5, atol=1e-5)
+
+
+def test_mean_correlation_gradients_match_the_loop():
+    g = torch.Generator().manual_seed(3)
+    ref = torch.randn(1, 2, 3, 2, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    queries = torch.randn(1, 3, 2, 3, 2, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    weights = torch.randn(1, 3, 27, generator=g, dtype=torch.float64)
+    (mean_correlation_3d(ref, queries, (1, 1, 1)) * weights).sum().backward()
+    fast = (ref.grad.clone(), queries.grad.clone())
+    ref.grad, queries.grad = None, None
+    loop = torch.stack([cross_correlation_3d(ref, queries[:, i], (1, 1, 1)).mean((2, 3, 4)) for i in range(3)], 1)
+    (loop * weights).sum().backward()
+    torch.testing.assert_close(fast[0], ref.grad)
+    torch.testing.assert_close(fast[1], queries.grad)
 
 
 def test_cost_volume_peaks_at_true_shift():

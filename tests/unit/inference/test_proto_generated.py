@@ -1,6 +1,8 @@
 """The committed stubs are exactly what scripts/gen_proto.sh generates from the .proto files."""
 
+import os
 import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -9,7 +11,9 @@ GENERATED = ("types_pb2.py", "types_pb2.pyi", "types_pb2_grpc.py",
 
 
 def test_regenerating_gives_the_committed_stubs(tmp_path):
-    subprocess.run(["bash", str(ROOT / "scripts" / "gen_proto.sh"), str(tmp_path)], check=True, cwd=ROOT)
+    # this interpreter's grpc_tools, whether or not its venv is activated
+    subprocess.run(["bash", str(ROOT / "scripts" / "gen_proto.sh"), str(tmp_path)], check=True, cwd=ROOT,
+                   env={**os.environ, "PYTHON": sys.executable})
     for name in GENERATED:
         fresh = (tmp_path / "n3dmap" / "v1" / name).read_bytes()
         committed = (ROOT / "n3dmap" / "v1" / name).read_bytes()
