@@ -164,7 +164,7 @@ def check_output_dir(out_dir: str | os.PathLike, *, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
         raise DataError(f"{out} exists and is not a directory")
     if out.exists() and any(out.iterdir()) and not overwrite:
-        raise DataError(f"{out} is not empty; choose an empty directory or overwrite")
+        raise DataError(f"{out} is not empty; choose an empty directory or replace it (--overwrite)")
 
 
 def write_dataset(out_dir: str | os.PathLike, records: Iterable[Mapping[str, np.ndarray]], *,

@@ -53,8 +53,10 @@ def resolve_device(choice: str):
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
         device = torch.device(choice)
-    except RuntimeError as e:
-        raise CliError(f"--device {choice!r}: {e}") from None
+    except RuntimeError:  # torch's message lists every backend it knows; name the ones n3dmap runs on
+        raise CliError(f"--device {choice!r}: expected cpu, cuda, cuda:N or auto") from None
+    if device.type not in ("cpu", "cuda"):
+        raise CliError(f"--device {choice!r}: expected cpu, cuda, cuda:N or auto")
     if device.type == "cuda" and not torch.cuda.is_available():
         raise CliError(f"--device {choice}: CUDA is not available on this machine")
     return device

@@ -45,6 +45,15 @@ AUTHORS_KEYS = ("pix_T_cams", "origin_T_camXs", "origin_T_camRs", "rgb_camXs", "
 def load_authors_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """The arrays of one authors' npz file, shape-checked; DataError naming the file and key."""
     path = Path(path)
+    # np.load treats anything that is not a zip/.npy as a pickle and then says "pickled data"; name
+    # the real problem instead.
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(4)
+    except OSError as e:
+        raise DataError(f"{path}: cannot read: {e.strerror or e}") from None
+    if magic[:2] != b"PK":
+        raise DataError(f"{path} is not an .npz archive (a zip of .npy arrays, as the authors' files are)")
     try:
         with np.load(path, allow_pickle=False) as z:
             missing = [k for k in AUTHORS_KEYS if k not in z.files]

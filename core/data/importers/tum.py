@@ -130,8 +130,10 @@ def import_tum(src: str | os.PathLike, out_dir: str | os.PathLike, *, num_frames
                on_record: Callable[[int, str], None] | None = None) -> dict:
     """Convert one TUM RGB-D sequence directory into a dataset of T=num_frames windows."""
     root = Path(src)
-    if not root.is_dir():
+    if not root.exists():
         raise DataError(f"TUM sequence directory {root} does not exist")
+    if not root.is_dir():
+        raise DataError(f"{root} is a file; a TUM sequence is a directory (rgb.txt, depth.txt, groundtruth.txt)")
     if num_frames < 1 or frame_step < 1 or (stride is not None and stride < 1):
         raise DataError("num_frames, frame_step and stride must be at least 1")
     stride = stride or num_frames

@@ -1,18 +1,32 @@
-"""`n3dmap train flow`: 3D imagination flow over frozen mapper features (synthetic rigid + warp + smooth)."""
+"""`n3dmap train flow`: the 3D imagination flow module (synthetic rigid + warp + smooth losses)."""
 
 from __future__ import annotations
 
+from services.cli.errors import CliError
 from services.cli.train import add_task_parser, run_train
 
 
 def register(tasks) -> None:
     parser = add_task_parser(
-        tasks, "flow", help="3D imagination flow (PWC-style) over frozen features",
-        description="Train the 3D flow module between egomotion-stabilised maps: supervised synthetic rigid "
-                    "motions (large/small/zero thirds) + feature-warp loss on real pairs + smoothness. The "
-                    "mapper (from --init) is always kept fixed. The paper used a learning rate of 1e-4 for "
-                    "flow (--lr 1e-4).")
+        tasks, "flow", help="3D imagination flow (PWC-style) between egomotion-stabilised frames",
+        description="Train the 3D flow module between egomotion-stabilised frames: supervised synthetic rigid "
+                    "motions (large/small/zero thirds) + a warp loss on real pairs + smoothness. It compares "
+                    "the fused occupancy+RGB input volumes by default (--inputs volume; small feature maps "
+                    "were measured not to carry object motion) or, as the paper, the mapper's feature maps "
+                    "(--inputs features, which needs a pretrained mapper from --init). The mapper from --init "
+                    "is kept fixed; its occupancy head, if any, gates the flow at test time. The default "
+                    "learning rate is the preset's flow rate (the paper's 1e-4 at the paper preset).")
+    parser.add_argument("--inputs", choices=("volume", "features"), default="volume",
+                        help="what the module compares: input volumes (default) or mapper features")
     parser.add_argument("--warp-weight", type=float, default=1.0)
     parser.add_argument("--smooth-weight", type=float, default=0.05)
-    parser.set_defaults(func=lambda args: run_train("flow", args, {
-        "warp_weight": args.warp_weight, "smooth_weight": args.smooth_weight}))
+    parser.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    if args.inputs == "features" and not args.init:
+        # A randomly initialised, frozen mapper gives features that carry nothing to match.
+        raise CliError("--inputs features compares the mapper's feature maps and needs a pretrained mapper: "
+                       "pass --init BUNDLE (e.g. RUN_DIR/bundle of `n3dmap train pretrain`)")
+    return run_train("flow", args, {"inputs": args.inputs, "warp_weight": args.warp_weight,
+                                    "smooth_weight": args.smooth_weight})

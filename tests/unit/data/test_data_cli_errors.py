@@ -54,9 +54,14 @@ def test_error_paths(capsys, dataset, tmp_path):
     expect_error(capsys, "preview", dataset, "--out", tmp_path / "p.png", "--index", 99,
                  fragments=["out of range"])
     expect_error(capsys, "generate", "--preset", "tiny", "--episodes", 1, "--out", dataset,
-                 fragments=["is not empty"])
+                 fragments=["is not empty", "--overwrite"])
     expect_error(capsys, "import", "tum", tmp_path / "nope", "--out", tmp_path / "o",
                  fragments=["does not exist"])
+    text = tmp_path / "notes.txt"
+    text.write_text("not an archive\n")
+    expect_error(capsys, "import", "tum", text, "--out", tmp_path / "o", fragments=["is a file", "directory"])
+    expect_error(capsys, "import", "authors-npz", text, "--out", tmp_path / "o",
+                 fragments=["notes.txt is not an .npz archive"])
     (dataset / "shard-00001.tar").unlink()
     expect_error(capsys, "info", dataset, "--verify", fragments=["missing shard shard-00001.tar"])
     expect_error(capsys, "preview", dataset, "--out", tmp_path / "p.png", fragments=["missing shard"])

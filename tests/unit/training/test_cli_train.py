@@ -81,3 +81,11 @@ def test_forwarded_argv_drops_submission_flags_and_makes_paths_absolute(tmp_path
     for name in ("steps", "objective", "freeze_features", "workers"):
         assert getattr(again, name) == getattr(args, name)
     assert again.attach and again.address is None
+
+
+def test_flow_over_features_without_init_is_one_line_exit_2(tmp_path, capsys):
+    rc = main(["train", "flow", "--data", str(tmp_path), "--run-dir", str(tmp_path / "r"), "--inputs", "features"])
+    assert rc == 2
+    line = _one_error_line(capsys)
+    assert "--inputs features" in line and "--init BUNDLE" in line
+    assert not (tmp_path / "r").exists()  # refused before anything was written
