@@ -14,6 +14,10 @@ import time
 from services.cli.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 from services.streaming.session import add_zenoh_arguments, options_from_args
 
+# = core.pipeline.moving.DEFAULT_DT (a test keeps them equal); not imported, so that parsing the
+# command line does not load torch
+DEFAULT_FRAME_DT = 0.2
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -35,6 +39,10 @@ def register(subparsers) -> None:
                              "camera, listener and zenoh need a core; on a loaded 2-core host two threads "
                              "spin against each other and run ~10× slower)")
     bridge.add_argument("--min-score", type=float, default=0.0, help="drop boxes scored below this")
+    bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S",
+                        help="seconds between consecutive frames of a camera (its capture interval; default "
+                             "%(default)s, the synthetic world's step). A pair that spans dropped frames "
+                             "spans their intervals too, so velocities stay in m/s")
     bridge.add_argument("--bridge-id", default=None, help="id in the liveliness token and status key (default: random)")
     bridge.add_argument("--duration", type=positive_float, default=None, metavar="S",
                         help="stop after S seconds (default: run until SIGINT/SIGTERM)")
@@ -103,7 +111,7 @@ def _run_bridge(args: argparse.Namespace) -> int:
     runtime = Runtime(RuntimeConfig(bundle_dir=args.bundle, device=args.device,
                                     num_threads=args.threads or default_bridge_threads()))
     try:
-        processor = RuntimeProcessor(runtime, min_score=args.min_score)
+        processor = RuntimeProcessor(runtime, min_score=args.min_score, frame_dt=args.frame_dt)
     except ValueError as e:
         raise CliError(str(e)) from None
     stop = _stop_event()

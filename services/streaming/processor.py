@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from google.protobuf.message import DecodeError
 
+from core.pipeline.moving import DEFAULT_DT, MovingObjectsConfig
 from core.pipeline.stream_step import FrameEncoding, encode_previous, moving_step
 from n3dmap.v1 import inference_pb2, types_pb2
 from services.inference import codecs
@@ -63,7 +64,8 @@ def detections_result(out: dict, *, min_score: float) -> DetectionsResult:
 class RuntimeProcessor:
     """Decode `Frame` payloads and run egomotion + moving objects on the runtime's bundle."""
 
-    def __init__(self, runtime: Runtime, *, min_score: float = 0.0, reuse: bool = True) -> None:
+    def __init__(self, runtime: Runtime, *, min_score: float = 0.0, reuse: bool = True,
+                 frame_dt: float = DEFAULT_DT) -> None:
         missing = [r for r in ("moving_objects",) if r not in runtime.routes]
         if missing:
             raise ValueError(f"bundle {runtime.version} cannot serve the stream bridge: it lacks the modules for "
@@ -71,6 +73,9 @@ class RuntimeProcessor:
                              "train the flow module into the bundle first")
         self.runtime = runtime
         self.min_score = min_score
+        if not frame_dt > 0:
+            raise ValueError(f"frame_dt must be positive seconds, got {frame_dt}")
+        self.frame_dt = float(frame_dt)  # seconds between consecutive sequence numbers of a camera
         self.reuse = reuse  # False: encode the previous frame again every step (for comparisons)
         self._stages: dict[str, deque] = {}
         self._stages_lock = threading.Lock()
@@ -129,10 +134,15 @@ class RuntimeProcessor:
         views0 = stack_views([state.previous], "previous")
         device = self.runtime.device
         timings: dict[str, float] = {}
+        # After drops the pair spans several frame intervals: velocities and the speed threshold use
+        # the real span, not one interval (sequence numbers only grow here: duplicates and
+        # out-of-order frames never reach process, and a publisher restart resets the state).
+        config = MovingObjectsConfig(dt=self.pair_dt(state.previous.sequence, frame.sequence))
         with torch.inference_mode():
             t0, t1 = views_tensors(views0, device), views_tensors(views1, device)
             out = moving_step(bundle, **{f"{k}0": v for k, v in t0.items()}, **{f"{k}1": v for k, v in t1.items()},
-                              previous=self._cached(state, state.previous.sequence, version), timings=timings)
+                              previous=self._cached(state, state.previous.sequence, version), config=config,
+                              timings=timings)
         # This frame's own-ref work (its egomotion volume) is the next step's previous-frame cache.
         self._remember(state, frame.sequence, version, out["current"])
         egomotion = None
@@ -150,6 +160,10 @@ class RuntimeProcessor:
         timings["step_total"] = time.perf_counter() - started
         self._record(timings)
         return Outputs(moving_objects=detections.SerializeToString(), egomotion=egomotion)
+
+    def pair_dt(self, sequence0: int, sequence1: int) -> float:
+        """Seconds spanned by frames `sequence0` -> `sequence1` of one camera (at least one interval)."""
+        return max(1, int(sequence1) - int(sequence0)) * self.frame_dt
 
     # -- per-stage timings ---------------------------------------------------------------------------
     def _record(self, timings: dict[str, float]) -> None:

@@ -17,6 +17,7 @@ import torch
 from core.bundle import Bundle, save_bundle
 from core.pipeline import encode_previous, moving_objects, moving_step
 from core.pipeline.egomotion import estimate_egomotion
+from core.pipeline.moving import MovingObjectsConfig
 from core.presets import TINY
 from core.tasks.egomotion import EgomotionTask
 from core.tasks.flow import FlowTask
@@ -159,6 +160,29 @@ def test_processor_answers_equal_the_routes(bundle_dir, frames):
     assert stats["idle_map_previous"]["count"] >= 2
 
 
+def test_a_pair_across_dropped_frames_spans_their_intervals(bundle_dir, frames):
+    """Frames 0 -> 2 (1 dropped) at 0.25 s per frame: velocities and the speed threshold use 0.5 s, i.e.
+    they equal the pipeline run with dt = 0.5 (the velocities of a one-interval pair would be 2× too fast)."""
+    runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
+    processor = RuntimeProcessor(runtime, min_score=-1.0, frame_dt=0.25)
+    views = decoded(processor, frames)
+    state = CameraState()
+    processor.process("c", state, views[0])
+    state.previous, state.last_sequence = views[0], 0
+    got = types_pb2.Detections.FromString(processor.process("c", state, views[2]).moving_objects)
+    tensors = [views_tensors(stack_views([v], "v"), torch.device("cpu")) for v in (views[0], views[2])]
+    pair = {**{f"{k}0": v for k, v in tensors[0].items()}, **{f"{k}1": v for k, v in tensors[1].items()}}
+    slow = moving_objects(runtime.bundle, **pair, config=MovingObjectsConfig(dt=0.5))
+    keep = slow["valid"][0]
+    assert keep.any() and len(got.boxes) == int(keep.sum())
+    order = torch.argsort(-slow["scores"][0][keep], stable=True)
+    for box, velocity in zip(got.boxes, slow["velocities"][0][keep][order]):
+        np.testing.assert_allclose([box.vx, box.vy, box.vz], velocity.numpy(), atol=1e-4)
+    assert processor.pair_dt(0, 2) == 0.5 and processor.pair_dt(4, 5) == 0.25
+    with pytest.raises(ValueError, match="frame_dt"):
+        RuntimeProcessor(runtime, frame_dt=0.0)
+
+
 def test_cache_is_keyed_by_sequence(bundle_dir, frames):
     """A stale cache (another frame's encoding) is never used: the step recomputes instead."""
     runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
@@ -174,3 +198,10 @@ def test_cache_is_keyed_by_sequence(bundle_dir, frames):
     processor.process("c", state, views[2])
     assert processor.stats()["map_previous"]["count"] == 1  # frame 1 was encoded, frame 0's cache ignored
     assert state.extra["sequence"] == 2 and state.extra["encoding"] is not stale
+
+
+def test_bridge_frame_dt_default_is_the_pipelines():
+    from core.pipeline.moving import DEFAULT_DT
+    from services.cli.stream import DEFAULT_FRAME_DT
+
+    assert DEFAULT_FRAME_DT == DEFAULT_DT
