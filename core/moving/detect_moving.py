@@ -20,14 +20,15 @@ from core.moving.saliency import center_surround_score
 
 def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: float, min_voxels: int,
                              dt: float, occupied_above: float = 0.5, shell_margin: float | None = None,
-                             nms_iou: float = 0.3, connectivity: int = 26) -> list[dict]:
+                             nms_iou: float = 0.3, connectivity: int = 26, can_move=None) -> list[dict]:
     """Scored oriented boxes of the independently moving objects.
 
     flow: 3×Z×Y×X voxels (x, y, z), stabilised (background ≈ 0). occupancy: Z×Y×X in [0, 1] or None
     (every voxel counts as occupied). threshold: flow magnitude (voxels) above which a voxel moves.
     min_voxels: smaller components are dropped. dt: seconds from t to t+1. occupied_above: occupancy
     threshold. shell_margin: metres of the saliency shell (default 2 voxels). nms_iou: BEV IoU above
-    which a lower-scored box is suppressed.
+    which a lower-scored box is suppressed. can_move: Z×Y×X bool or None — voxels outside it never count
+    as moving (core.moving.ground.above_ground: nothing at or below the ground moves).
 
     Returns a list, best score first, of dicts: `box_ref` (7,) canonical box in ref, `score` (float,
     center-surround in [−1, 1]), `velocity_ref` (3,) mean velocity of the component's voxels in
@@ -48,6 +49,11 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
     magnitude = np.linalg.norm(f, axis=0)                            # Z×Y×X voxels
     # Unoccupied voxels carry no motion (the paper zeroes their flow at test time).
     moving = (magnitude > threshold) & occupied
+    if can_move is not None:
+        allowed = to_numpy(can_move).astype(bool)
+        if allowed.shape != moving.shape:
+            raise ShapeError(f"can_move: expected {grid.Z}×{grid.Y}×{grid.X}, got {'×'.join(map(str, allowed.shape))}")
+        moving &= allowed
     labels, count = connected_components(moving, connectivity=connectivity)
     margin = 2 * grid.voxel_size if shell_margin is None else shell_margin
     found = []

@@ -25,7 +25,7 @@ from core.geometry import se3
 from core.models.egomotion_inputs import fused_input_volume
 from core.pipeline.flow import flow_pair
 from core.pipeline.egomotion import rig_cam_T_ref
-from core.pipeline.moving import MovingObjectsConfig, boxes_from_flow
+from core.pipeline.moving import FrameEvidence, MovingObjectsConfig, box_occupancy, boxes_from_flow, frame_evidence
 
 
 @dataclass
@@ -34,11 +34,13 @@ class FrameEncoding:
 
     ego_volume: B×4×Z×Y×X egomotion input volume (None without an egomotion module or not yet made);
     features: B×F×Z×Y×X mapper map; occupancy: B×1×Z×Y×X probabilities (None without an occupancy
-    head). `features`/`occupancy` are None until `encode_previous` filled them."""
+    head); evidence: what the frame's depth alone says. `features`/`occupancy`/`evidence` are None until
+    `encode_previous` filled them."""
 
     ego_volume: torch.Tensor | None = None
     features: torch.Tensor | None = None
     occupancy: torch.Tensor | None = None
+    evidence: FrameEvidence | None = None  # observed voxels and ground plane (core.pipeline.moving)
 
 
 class _Stopwatch:
@@ -70,7 +72,8 @@ def encode_previous(bundle, *, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam
     waits for the next frame, so that work leaves the next step's latency; `moving_step` calls it for
     whatever is still missing."""
     watch = _Stopwatch(timings)
-    enc = FrameEncoding() if cached is None else FrameEncoding(cached.ego_volume, cached.features, cached.occupancy)
+    enc = FrameEncoding() if cached is None else FrameEncoding(cached.ego_volume, cached.features, cached.occupancy,
+                                                               cached.evidence)
     cam_T_ref = rig_cam_T_ref(world_T_cam, world_T_ref)  # B×V×4×4
     if enc.ego_volume is None and "egomotion" in bundle.modules:
         enc.ego_volume = fused_input_volume(rgb, depth, pix_T_cam, cam_T_ref, bundle.modules["egomotion"].grid)
@@ -80,6 +83,9 @@ def encode_previous(bundle, *, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam
         if "occupancy" in bundle.modules:
             enc.occupancy = bundle.modules["occupancy"].probabilities(enc.features)  # B×1×Z×Y×X
         watch.lap("map_previous")
+    if enc.evidence is None:
+        enc.evidence = frame_evidence(depth, pix_T_cam, cam_T_ref, bundle.modules["mapper"].grid)
+        watch.lap("evidence_previous")
     return enc
 
 
@@ -97,7 +103,7 @@ def moving_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0:
     Returns {"boxes": B×K×7 in ref0, "scores": B×K, "valid": B×K, "velocities": B×K×3 m/s, "flow":
     B×3×Z×Y×X, "ref0_T_ref1": B×4×4 used to stabilise, "cam0_T_cam1": B×4×4 (the egomotion route's
     answer; only with an egomotion module), "current": FrameEncoding of frame 1 (its ego volume only)}.
-    `timings` (a dict) receives seconds per stage: ego_volume, map_previous, egomotion, map_current
+    `timings` (a dict) receives seconds per stage: ego_volume, map_previous, evidence_previous, egomotion, map_current
     (only for a flow module that compares feature maps), flow, boxes.
     """
     _check_modules(bundle)
@@ -145,7 +151,8 @@ def moving_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0:
                               volumes=(v0, None)))["flow"]  # B×3×Z×Y×X
     flow = raw if enc0.occupancy is None else raw * (enc0.occupancy >= cfg.occupied_above).to(raw.dtype)
     watch.lap("flow")
-    found = boxes_from_flow(flow, enc0.occupancy, bundle.modules["mapper"].grid, cfg)
+    found = boxes_from_flow(flow, box_occupancy(cfg, enc0.occupancy, enc0.evidence), grid, cfg,
+                            ground=enc0.evidence.ground)
     watch.lap("boxes")
     out.update(found, flow=flow, ref0_T_ref1=ref0_T_ref1)
     return out

@@ -19,9 +19,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from core.data.ground_truth import gt_flow, gt_occupancy
+from core.data.ground_truth import gt_flow, gt_occupancy, points_in_ref
 from core.eval.moving_protocol import camera_setting, gt_moving_boxes, moving_objects_2p5d_rig
-from core.pipeline.moving import DEFAULT_DT, MovingObjectsConfig, boxes_from_flow, moving_objects
+from core.moving.ground import DEFAULT_MARGIN_VOXELS, fit_ground_plane
+from core.pipeline.moving import DEFAULT_DT, OCCUPANCY_SOURCES, MovingObjectsConfig, boxes_from_flow, moving_objects
 from services.cli.argtypes import non_negative_float, positive_float, positive_int
 from services.cli.eval import add_eval_parser, iter_records, load_bundle_for_eval, resolve_device
 from services.cli.eval_detection import threshold_key
@@ -49,6 +50,11 @@ def register(kinds) -> None:
     parser.add_argument("--dt", type=positive_float, default=DEFAULT_DT, help="seconds between steps (default %(default)s)")
     parser.add_argument("--min-speed", type=non_negative_float, default=1.0, help="m/s above which a voxel moves (3D)")
     parser.add_argument("--min-voxels", type=positive_int, default=3, help="smallest 3D component kept")
+    parser.add_argument("--occupancy", choices=OCCUPANCY_SOURCES, default="observed",
+                        help="voxels that can move: observed by frame 0's depth (default) or predicted by the "
+                             "occupancy head (the paper's rule)")
+    parser.add_argument("--no-ground", action="store_true",
+                        help="do not drop the voxels at or below the ground plane fitted to frame 0's points")
     parser.add_argument("--flow-threshold-px", type=non_negative_float, default=1.0, help="2D flow (pixels) that moves (2.5D)")
     parser.add_argument("--min-pixels", type=positive_int, default=15, help="smallest 2D cluster kept (2.5D)")
     parser.add_argument("--min-points", type=positive_int, default=10,
@@ -79,7 +85,9 @@ def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_
             out = moving_objects(bundle, **pair_inputs(batch, t, t + 1), config=config)
             found[MODEL] = _np(out["boxes"][0], out["scores"][0], out["valid"][0])
             true_flow = gt_flow(record, t, grid)[None]                          # 1×3×Z×Y×X
-            oracle = boxes_from_flow(true_flow, gt_occupancy(record, t, grid)[None], grid, config)
+            xyz, valid = points_in_ref(record, t)                               # the same ground plane rule
+            ground = [fit_ground_plane(xyz[valid].double().numpy()) if config.ground_margin is not None else None]
+            oracle = boxes_from_flow(true_flow, gt_occupancy(record, t, grid)[None], grid, config, ground=ground)
             found[ORACLE_3D] = _np(oracle["boxes"][0], oracle["scores"][0], oracle["valid"][0])
             if baselines:
                 for name, (source, stabilise) in BASELINES.items():
@@ -111,6 +119,7 @@ def build_report(bundle, records, *, device, config: MovingObjectsConfig, thresh
                               "pairs_moving_camera": result["pairs"]["moving"], "device": str(device),
                               "stabilised_with": result["stabilised_with"], "dt_s": config.dt,
                               "min_speed_m_s": config.min_speed, "min_voxels": config.min_voxels,
+                              "box_occupancy": config.occupancy, "ground_margin_voxels": config.ground_margin,
                               "flow_threshold_px": threshold_px, "min_pixels": min_pixels,
                               "gt_min_points": min_points})
     metrics = {cam: {m: a.summary() for m, a in per.items()} for cam, per in result["acc"].items()}
@@ -154,7 +163,8 @@ def build_report(bundle, records, *, device, config: MovingObjectsConfig, thresh
 def run(args) -> int:
     device = resolve_device(args.device)
     bundle = load_bundle_for_eval(args.bundle, device, NEEDS, data_dir=args.data)
-    config = MovingObjectsConfig(dt=args.dt, min_speed=args.min_speed, min_voxels=args.min_voxels)
+    config = MovingObjectsConfig(dt=args.dt, min_speed=args.min_speed, min_voxels=args.min_voxels,
+                                 occupancy=args.occupancy, ground_margin=None if args.no_ground else DEFAULT_MARGIN_VOXELS)
     report = build_report(bundle, iter_records(args.data, args.max_records), device=device, config=config,
                           threshold_px=args.flow_threshold_px, min_pixels=args.min_pixels,
                           min_points=args.min_points, baselines=not args.no_baselines, bundle_path=args.bundle,

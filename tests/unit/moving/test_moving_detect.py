@@ -7,6 +7,7 @@ from collections import deque
 import numpy as np
 import pytest
 
+from core.errors import ShapeError
 from core.eval.iou3d import iou_3d
 from core.geometry.grid import GridConfig
 from core.moving.boxfit import fit_box_to_voxels, min_area_rectangle
@@ -160,3 +161,23 @@ def test_zero_flow_finds_nothing_and_noise_below_threshold_is_ignored():
     assert moving_objects_from_flow(zero, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1) == []
     small = 0.2 * np.ones((3,) + GRID.shape_zyx)  # magnitude 0.35 < 0.5 everywhere
     assert moving_objects_from_flow(small, None, GRID, threshold=0.5, min_voxels=5, dt=0.1) == []
+
+
+def test_voxels_that_cannot_move_are_left_out_of_the_component():
+    """The moving block sits on the ground slab, whose voxels the flow (wrongly) moves too: without
+    `can_move` they join the block's component and its box reaches into the slab; with the slab
+    excluded the box is the block's own."""
+    truth = np.array([0.0, 0.6, 8.0, 4.0, 1.5, 2.0, 0.0])
+    block, occupancy = scene_with_block(truth)
+    flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
+    under = np.zeros_like(block)
+    under[:, -1, :] = block.any(axis=1)           # the slab row right under the block
+    flow[0][block | under] = 1.0
+    (bleeding,) = moving_objects_from_flow(flow, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1)
+    can_move = np.ones(GRID.shape_zyx, dtype=bool)
+    can_move[:, -1, :] = False
+    (clean,) = moving_objects_from_flow(flow, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1, can_move=can_move)
+    assert clean["num_voxels"] == int(block.sum()) < bleeding["num_voxels"]
+    assert iou_3d(clean["box_ref"][None], truth[None])[0, 0] > iou_3d(bleeding["box_ref"][None], truth[None])[0, 0]
+    with pytest.raises(ShapeError, match="can_move"):
+        moving_objects_from_flow(flow, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1, can_move=can_move[:, :1])

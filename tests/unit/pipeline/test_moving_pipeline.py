@@ -87,7 +87,7 @@ def test_routes_keyword_set_and_contract(bundle, one_car_record):
 def test_everything_moves_gives_boxes_in_the_grid(bundle, one_car_record):
     # occupancy threshold below every probability and no speed threshold: the random flow moves every
     # voxel, so there is at least one component and its box must stay within the grid
-    cfg = MovingObjectsConfig(min_speed=0.0, occupied_above=-1.0)
+    cfg = MovingObjectsConfig(min_speed=0.0, occupied_above=-1.0, occupancy="predicted", ground_margin=None)
     pair = _pair(one_car_record, with_ref=True)
     out = moving_objects(bundle, **pair, stabilize="poses", config=cfg)
     _check_contract(out, 1)
@@ -124,3 +124,41 @@ def test_ground_truth_flow_finds_the_moving_car(one_car_record):
     true_v = (gt_box1[0, :3] - gt_box[0, :3]) / MovingObjectsConfig().dt
     v = out["velocities"][0, 0].double()
     assert torch.dot(v, true_v) / (v.norm() * true_v.norm()) > 0.9
+
+
+def test_default_boxes_use_observed_voxels_above_the_ground(bundle, one_car_record):
+    """The default post-processing = boxes_from_flow on the head-gated flow with frame 0's observed
+    voxels and its fitted ground plane, computed here by hand from the record's points."""
+    from core.data.ground_truth import gt_occupancy, points_in_ref
+    from core.moving.ground import fit_ground_plane
+    from core.pipeline.moving import frame_evidence
+    from core.pipeline.egomotion import rig_cam_T_ref
+
+    cfg = MovingObjectsConfig(min_speed=0.0)
+    pair = _pair(one_car_record, with_ref=True)
+    out = moving_objects(bundle, **pair, stabilize="poses", config=cfg)
+    evidence = frame_evidence(pair["depth0"], pair["pix_T_cam0"],
+                              rig_cam_T_ref(pair["world_T_cam0"], pair["world_T_ref0"]), GRID)
+    # observed voxels = the record's own voxelised depth points (an independent float64 path through
+    # ground_truth; points exactly on a voxel face, like the flat ground, may round to either side)
+    ours, reference = evidence.observed[0, 0].bool(), gt_occupancy(one_car_record, 0, GRID)[0].bool()  # Z×Y×X
+    differ = ours ^ reference
+    assert differ.sum() <= 0.1 * reference.sum()
+    # every difference is a point that rounded across a horizontal voxel face (the ground lies on one):
+    # the other side of that face holds the reference's voxel or ours
+    either = ours | reference
+    neighbour = torch.zeros_like(either)
+    neighbour[:, 1:] |= either[:, :-1]
+    neighbour[:, :-1] |= either[:, 1:]
+    assert (neighbour[differ]).all()
+    xyz, valid = points_in_ref(one_car_record, 0)
+    plane = fit_ground_plane(xyz[valid].double().numpy())
+    assert plane is not None and np.allclose(evidence.ground[0], plane, atol=1e-3)
+    flow = estimate_flow(bundle, **pair, stabilize="poses")
+    again = boxes_from_flow(flow["flow"], evidence.observed, GRID, cfg, ground=evidence.ground)
+    assert torch.allclose(again["boxes"], out["boxes"]) and torch.equal(again["valid"], out["valid"])
+    # no box reaches below the ground: the bottom face of every box lies on or above the plane
+    boxes = out["boxes"][out["valid"]].double()  # K×7
+    a, b, c, d = plane
+    bottom_heights = a * boxes[:, 0] + b * (boxes[:, 1] + boxes[:, 4] / 2) + c * boxes[:, 2] + d  # y down
+    assert (bottom_heights >= -0.05 * GRID.voxel_size).all()
