@@ -12,7 +12,8 @@ its bottom quarter, and everything under it).
 Conventions (DESIGN.md §2): points in `ref`, metres, y down; the plane is (a, b, c, d) with unit
 normal n = (a, b, c) pointing UP (n · (0, −1, 0) > 0) and height(p) = n · p + d (metres above the
 ground). RANSAC: random point triplets, the plane with the most inliers among those tilted at most
-`max_tilt_deg` from horizontal and lying below the rig origin (d > 0: the cameras look at the ground
+`max_tilt_deg` from ref's horizontal (45° by default: when ref is a camera looking down, as in the
+synthetic rig at 10–40° elevation, the ground tilts that much in it) and lying below the rig origin (d > 0: the cameras look at the ground
 from above), then a least-squares refit to its inliers. Deterministic for a given `seed`.
 """
 
@@ -41,7 +42,7 @@ def _plane_through(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return n, -(n * p[:, 0]).sum(axis=1)
 
 
-def fit_ground_plane(points: np.ndarray, *, max_tilt_deg: float = 20.0, inlier_distance: float = 0.1,
+def fit_ground_plane(points: np.ndarray, *, max_tilt_deg: float = 45.0, inlier_distance: float = 0.1,
                      iterations: int = 256, max_points: int = 4096, min_inliers: int = 50,
                      seed: int = 0) -> np.ndarray | None:
     """points: N×3 in ref (metres, y down) -> the ground plane (4,) = (a, b, c, d), or None when no

@@ -77,9 +77,9 @@ def cpu_seconds(pid: int) -> float:
 
 
 def fresh_bundle(preset_name: str, out: Path) -> Path:
-    from tests.stream_bundles import random_stream_bundle
+    from tests.stream_bundles import untrained_stream_bundle
 
-    return random_stream_bundle(preset_name, out, provenance={"bench": "stream"})
+    return untrained_stream_bundle(preset_name, out, provenance={"bench": "stream"})
 
 
 def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
