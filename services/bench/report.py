@@ -148,9 +148,10 @@ def _moving_section(report: Report, mov: dict, config: BenchConfig) -> None:
                 "input volumes (n3dmap's default), stabilised with the true poses or with the egomotion module; 2.5D: 2D optical flow (Farneback; "
                 "or the true 2D flow for the oracle), thresholded, clustered, lifted with depth, per view.")
     for setting in ("static", "moving"):
-        rows = [[m, agg.fmt(v["ap"]), agg.fmt(v["gt_boxes"], 0)] for m, v in mov[setting].items()]
+        rows = [[m, agg.fmt(v["ap"]), agg.fmt(v.get("ap_iou025")), agg.fmt(v["gt_boxes"], 0)]
+                for m, v in mov[setting].items()]
         report.text(f"{setting.capitalize()} camera:")
-        report.table(["method", f"AP@{config.moving_iou}", "moving objects"], rows)
+        report.table(["method", f"AP@{config.moving_iou}", "AP@0.25", "moving objects"], rows)
         fig = Figure(figsize=(5, 4))
         ax = fig.subplots()
         for m, v in mov[setting].items():
