@@ -11,19 +11,24 @@ on this project's 2-core box at load ~4, `a * b + a` on 100k floats took 89 µs 
 
 Workers use the spawn start method (no fork of a parent that may hold torch/OpenMP state or threads)
 and ignore SIGINT: Ctrl-C is the parent's to handle, which stops handing out work, terminates the
-workers and joins them, leaving no process behind. At most `window` records are
+workers and joins them, leaving no process behind. Workers hand records back as files in a private
+temporary directory (see `render_record_to_file`), so a terminated worker never leaves half a
+message in the executor's result pipe. At most `window` records are
 submitted ahead of the one being consumed, so memory stays bounded however slow the consumer is.
 """
 
 from __future__ import annotations
 
 import multiprocessing
+import os
+import shutil
 import signal
+import tempfile
 import threading
 from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from typing import Iterable, Iterator
 
@@ -51,6 +56,36 @@ def render_record(spec: RecordSpec) -> dict:
     return generate_record(get_preset(spec.preset), seed=spec.seed, num_views=spec.num_views,
                            num_frames=spec.num_frames, moving_ego=spec.moving_ego,
                            sparse_depth=spec.sparse_depth, noise=spec.noise)
+
+
+def render_record_to_file(spec: RecordSpec, path: str) -> str:
+    """Worker side of the pool: render `spec`, write it to `path` as record npz bytes, return `path`.
+
+    Why a file and not the return value: a record travels back through the executor's result pipe,
+    and one at the paper preset is megabytes. Ctrl-C terminates the workers; one killed halfway
+    through sending left a partial message that the executor's reader thread waited on forever, so
+    the interrupted command hung (seen under load: the Ctrl-C test timed out twice at load ~5). A
+    path is a few bytes, written in one atomic pipe write."""
+    from core.data.shards import encode_record
+
+    tmp = f"{path}.tmp"
+    with open(tmp, "wb") as f:
+        f.write(encode_record(render_record(spec)))
+    os.replace(tmp, path)
+    return path
+
+
+def _read_rendered(path: str, index: int) -> dict:
+    """The record a worker wrote to `path` (validated, never unpickled); the file is removed."""
+    from core.data.shards import decode_record
+
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    finally:
+        with suppress(OSError):
+            os.remove(path)
+    return decode_record(data, f"rendered record {index}")
 
 
 # Below this many rendered pixels a job runs in-process: a worker's start-up (importing torch, ~2 CPU-s)
@@ -115,7 +150,7 @@ def _sigint_ignored_while_spawning() -> Iterator[None]:
 
 
 def render_records(specs: Iterable[RecordSpec], *, jobs: int, window: int | None = None) -> Iterator[dict]:
-    """Yield `render_record(spec)` for each spec, in order.
+    """Yield the record of each spec (`render_record(spec)`; from workers, its schema keys), in order.
 
     jobs: worker processes (1: render in this process, with one torch thread while doing so).
     window: records submitted ahead of the consumer (default 2·jobs; memory ≈ window records).
@@ -143,16 +178,21 @@ def render_records(specs: Iterable[RecordSpec], *, jobs: int, window: int | None
                                    initializer=_init_worker)
     pending: deque[tuple[int, RecordSpec, Future]] = deque()
     todo = iter(enumerate(specs))
+    spool = tempfile.mkdtemp(prefix="n3dmap-render-")  # workers hand records over as files here
+
+    def submit(i: int, spec: RecordSpec) -> Future:
+        return executor.submit(render_record_to_file, spec, os.path.join(spool, f"{i:08d}.npz"))
+
     try:
         with _sigint_ignored_while_spawning():  # the first `jobs` submits start the workers
             for i, spec in todo:
-                pending.append((i, spec, executor.submit(render_record, spec)))
+                pending.append((i, spec, submit(i, spec)))
                 if len(pending) >= window:
                     break
         while pending:
             i, spec, future = pending.popleft()
             try:
-                record = future.result()
+                record = _read_rendered(future.result(), i)
             except BrokenProcessPool:
                 raise N3dmapError(f"a render worker process died while rendering record {i} "
                                   f"(seed {spec.seed}); killed, or out of memory? (try fewer --jobs)") from None
@@ -162,7 +202,7 @@ def render_records(specs: Iterable[RecordSpec], *, jobs: int, window: int | None
                 raise N3dmapError(f"rendering failed in a worker: {_describe(i, spec, e)}") from None
             nxt = next(todo, None)
             if nxt is not None:
-                pending.append((nxt[0], nxt[1], executor.submit(render_record, nxt[1])))
+                pending.append((nxt[0], nxt[1], submit(*nxt)))
             yield record
     finally:
         for _, _, future in pending:
@@ -170,6 +210,7 @@ def render_records(specs: Iterable[RecordSpec], *, jobs: int, window: int | None
         if pending:  # stopped early (error downstream, Ctrl-C): records in flight are not wanted
             _stop_workers(executor)
         executor.shutdown(wait=True, cancel_futures=True)
+        shutil.rmtree(spool, ignore_errors=True)
 
 
 def _stop_workers(executor: ProcessPoolExecutor) -> None:
