@@ -76,13 +76,20 @@ def _running(pid: int) -> bool:
     return state != "Z"
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_stops_the_workers_and_leaves_no_dataset(tmp_path):
     out = tmp_path / "d"
     env = dict(os.environ, PYTHONPATH=str(ROOT))
+    # As from an interactive terminal: SIGINT at its default. A test run started in the background
+    # (`cmd &` in a non-interactive shell) inherits SIGINT ignored, and the CLI would rightly ignore
+    # Ctrl-C too (this test then failed in such runs: the generation ran to the end with rc 0).
     proc = subprocess.Popen([sys.executable, "-m", "services.cli.main", "data", "generate", "--preset", "paper",
                              "--episodes", "500", "--jobs", "2", "--out", str(out)],
                             cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=_default_sigint)
     try:
         deadline = time.monotonic() + 90
         while not (out.is_dir() and any(out.iterdir())):  # a shard is being written: workers are rendering
