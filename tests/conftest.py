@@ -10,3 +10,19 @@ if ROOT not in sys.path:
 # Ray must never phone home or ask for a token in tests (ECOSYSTEM.md).
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 os.environ.setdefault("RAY_AUTH_MODE", "disabled")
+
+
+import pytest  # noqa: E402 - after the path setup above
+
+
+@pytest.fixture
+def one_torch_thread():
+    """Run the test on one torch thread (restored after): small tensors run fastest on one thread, and
+    a shared 2-core machine thrashes with more. Directories and modules of small-tensor tests use it
+    through an autouse fixture of their own."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
