@@ -63,9 +63,10 @@ def render_record_to_file(spec: RecordSpec, path: str) -> str:
 
     Why a file and not the return value: a record travels back through the executor's result pipe,
     and one at the paper preset is megabytes. Ctrl-C terminates the workers; one killed halfway
-    through sending left a partial message that the executor's reader thread waited on forever, so
-    the interrupted command hung (seen under load: the Ctrl-C test timed out twice at load ~5). A
-    path is a few bytes, written in one atomic pipe write."""
+    through sending leaves a partial message that the executor's reader thread waits on forever, and
+    shutdown(wait=True) joins that thread. The interrupted command hung once that way (SIGINT as the
+    first record arrived; not reproduced on demand, so the cause is inferred). A path is a few bytes,
+    written in one atomic pipe write."""
     from core.data.shards import encode_record
 
     tmp = f"{path}.tmp"
