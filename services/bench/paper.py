@@ -2,7 +2,8 @@
 
 `run_paper_bench(config, out_dir)` runs, as resumable stages under OUT/work/ (services.bench.stages):
 
-  data/train, data/test                 synthetic datasets (services.bench.data)
+  data/train, data/val, data/test       synthetic datasets (services.bench.data); val feeds the stopping
+                                        rules, test every evaluation
   seed<s>/pretrain_<arm>                view-contrastive and view-regression pretraining
   seed<s>/detector_<arm>_<mode>_L<N>    detector per arm (random/regression/contrastive), frozen or
                                         fine-tuned features, per label budget (trained on the first N
@@ -13,7 +14,11 @@
   seed<s>/eval/<kind>/<name>            one metrics.json per evaluation (detection mAP, retrieval,
                                         occupancy, flow EPE, egomotion vs ICP, moving objects)
 
-then writes OUT/report.md, OUT/metrics.json and the PNG plots (services.bench.report). Training goes
+then writes OUT/report.md, OUT/metrics.json and the PNG plots (services.bench.report). Each training
+stage trains by its stopping rule (services.bench.stopping) and keeps RUN_DIR/stopping.json. Seeds run
+one after another in this process with every CPU, or `parallel_seeds` at a time in worker processes
+(services.bench.seed_worker) with the CPUs shared out (services.threads): processes × threads never
+exceeds the usable CPUs. Training goes
 through the training CLI's own job runner (services.bench.training); every evaluation is scored by the
 `n3dmap eval` kinds' own `evaluate` functions (services/cli/eval_tasks, reduced to JSON by
 services.bench.evaluations).
@@ -22,16 +27,20 @@ services.bench.evaluations).
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Callable
 
 import torch
 
-from services.bench.plan import PRETRAINED_ARMS, BenchConfig
+from services.bench.plan import PRETRAINED_ARMS, BenchConfig, BenchConfigError
 from services.bench.stages import StageRunner, write_json
+from services.bench.stopping import MARKER as TRAIN_MARKER
+from services.threads import ThreadPlan, plan_threads
 
-TRAIN_MARKER = "bundle/bundle.json"
 EVAL_MARKER = "metrics.json"
 DATA_MARKER = "manifest.json"
 VOLUME_FLOW = "volume"   # the flow stage over fused input volumes (n3dmap's default), beside the per-arm ones
@@ -51,9 +60,12 @@ def _device(choice: str) -> torch.device:
     return torch.device(choice)
 
 
-def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, log: Callable[[str], None] = print) -> dict:
-    """Run (or continue) the whole benchmark into `out_dir`; returns the report's metrics dict."""
-    from core.presets import get_preset
+def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds: int = 1,
+                    threads: int | None = None, log: Callable[[str], None] = print) -> dict:
+    """Run (or continue) the whole benchmark into `out_dir`; returns the report's metrics dict.
+
+    parallel_seeds: seeds trained at the same time, each in a worker process (capped at the usable
+    CPUs); threads: torch threads per process instead of the plan's share (may oversubscribe)."""
     from services.bench.report import write_bench_report
 
     started = time.monotonic()
@@ -61,22 +73,101 @@ def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, log: Callable[[
     stages = StageRunner(out / "work", log)
     _check_same_plan(out / "work" / "plan.json", config)
     device = _device(config.device)
-    preset = get_preset(config.preset)
     log(f"[bench] paper benchmark, preset {config.preset}, seeds {list(config.seeds)}, device {device}, "
         f"{'quick profile' if config.quick else 'full profile'} -> {out}")
 
+    sequential = _thread_plan(1, threads)
+    torch.set_num_threads(sequential.threads)
+    log(f"[bench] threads, sequential stages: {sequential.describe()}")
     data = _data_stages(stages, config)
-    test_records = _load_records(data["test"])
+    workers = min(parallel_seeds, len(config.seeds))
+    if workers > 1:
+        parallel = _thread_plan(workers, threads)
+        log(f"[bench] threads, seeds in parallel: {parallel.describe()}")
+        _run_seed_workers(out, config, parallel, log)
     results: dict = {"seeds": {}}
-    for seed in config.seeds:
-        results["seeds"][str(seed)] = _seed_stages(stages, config, seed, data, test_records, device, preset)
+    test_records = _load_records(data["test"])
+    val_records = _load_records(data["val"])
+    for seed in config.seeds:   # after parallel workers, every stage is done and only read back here
+        results["seeds"][str(seed)] = _seed_stages(stages, config, seed, data, test_records, val_records, device)
 
     wall = time.monotonic() - started
     metrics = write_bench_report(out, config=config, results=results, stage_seconds=dict(stages.seconds),
-                                 wall_time_s=wall, ran=list(stages.ran))
+                                 wall_time_s=wall, ran=list(stages.ran), stopping=_stopping(out, config))
     log(f"[bench] report: {out / 'report.md'} ({wall:.1f} s this run; "
         f"{sum(v for v in stages.seconds.values() if v == v):.1f} s over all stages)")
     return metrics
+
+
+def run_one_seed(out_dir: str | Path, seed: int, *, log: Callable[[str], None] = print) -> None:
+    """Every stage of one seed, with the plan the parent wrote to OUT/work/plan.json (a seed worker)."""
+    out = Path(out_dir)
+    config = BenchConfig.from_dict(json.loads((out / "work" / "plan.json").read_text()))
+    if seed not in config.seeds:
+        raise BenchConfigError(f"seed {seed} is not in the plan's seeds {list(config.seeds)}")
+    stages = StageRunner(out / "work", log)
+    data = {split: stages.dir(f"data/{split}") for split in ("train", "val", "test")}
+    _seed_stages(stages, config, seed, data, _load_records(data["test"]), _load_records(data["val"]),
+                 _device(config.device))
+
+
+def _thread_plan(processes: int, threads: int | None) -> ThreadPlan:
+    plan = plan_threads(processes=processes)
+    return plan if threads is None else ThreadPlan(cpus=plan.cpus, processes=plan.processes, threads=threads)
+
+
+def _run_seed_workers(out: Path, config: BenchConfig, plan: ThreadPlan, log: Callable[[str], None]) -> None:
+    """Train the seeds in worker processes, `plan.processes` at a time, `plan.threads` threads each."""
+    env = {**os.environ, "OMP_NUM_THREADS": str(plan.threads), "MKL_NUM_THREADS": str(plan.threads)}
+    pending = [s for s in config.seeds]
+    running: dict[int, tuple[subprocess.Popen, Path]] = {}
+    failed: list[str] = []
+    try:
+        while pending or running:
+            while pending and len(running) < plan.processes:
+                seed = pending.pop(0)
+                log_path = out / "work" / f"seed{seed}" / "worker.log"
+                log_path.parent.mkdir(parents=True, exist_ok=True)
+                with open(log_path, "a") as f:
+                    proc = subprocess.Popen(
+                        [sys.executable, "-m", "services.bench.seed_worker", "--out", str(out), "--seed", str(seed),
+                         "--threads", str(plan.threads)], stdout=f, stderr=subprocess.STDOUT, env=env,
+                        cwd=str(Path(__file__).resolve().parents[2]))
+                running[seed] = (proc, log_path)
+                log(f"[bench] seed {seed}: worker pid {proc.pid}, {plan.threads} thread(s), log {log_path}")
+            time.sleep(1.0)
+            for seed, (proc, log_path) in list(running.items()):
+                if proc.poll() is not None:
+                    del running[seed]
+                    if proc.returncode == 0:
+                        log(f"[bench] seed {seed}: worker done")
+                    else:
+                        failed.append(f"seed {seed} (exit {proc.returncode}; last line: {_last_line(log_path)}; "
+                                      f"log {log_path})")
+                        log(f"[bench] seed {seed}: worker FAILED, exit {proc.returncode}")
+    finally:
+        for proc, _ in running.values():   # interrupted: stop our own workers (rerun resumes them)
+            proc.terminate()
+            proc.wait(timeout=30)
+    if failed:
+        raise BenchConfigError("seed worker(s) failed: " + "; ".join(failed))
+
+
+def _last_line(path: Path) -> str:
+    try:
+        lines = [l for l in path.read_text(errors="replace").splitlines() if l.strip()]
+    except OSError:
+        return "?"
+    return lines[-1][-300:] if lines else "(empty)"
+
+
+def _stopping(out: Path, config: BenchConfig) -> dict:
+    """{seed: {stage: stopping.json}} of every training stage (how long each trained, and why)."""
+    found: dict = {}
+    for seed in config.seeds:
+        for path in sorted((out / "work" / f"seed{seed}").glob(f"*/{TRAIN_MARKER}")):
+            found.setdefault(str(seed), {})[path.parent.name] = json.loads(path.read_text())
+    return found
 
 
 def _check_same_plan(path: Path, config: BenchConfig) -> None:
@@ -84,6 +175,9 @@ def _check_same_plan(path: Path, config: BenchConfig) -> None:
     from services.bench.plan import BenchConfigError
 
     current = {k: v for k, v in config.to_dict().items() if k not in ("seeds", "workers", "device")}
+    if path.exists() and "rules" not in json.loads(path.read_text()):
+        raise BenchConfigError(f"{path.parent.parent} holds a benchmark of an older n3dmap (fixed step counts, "
+                               "no stopping rules); use a new --out")
     if path.exists():
         earlier = {k: v for k, v in json.loads(path.read_text()).items() if k not in ("seeds", "workers", "device")}
         if earlier != current:
@@ -109,33 +203,39 @@ def _data_stages(stages: StageRunner, config: BenchConfig) -> dict:
         d, preset=config.preset, episodes=config.train_episodes, seed=config.data_seed, split="train"))
     test = stages.run("data/test", DATA_MARKER, lambda d: generate_split(
         d, preset=config.preset, episodes=config.test_episodes, seed=config.data_seed + 1, split="val"))
-    return {"train": train, "test": test}
+    val = stages.run("data/val", DATA_MARKER, lambda d: generate_split(
+        d, preset=config.preset, episodes=config.val_episodes, seed=config.data_seed + 2, split="val"))
+    return {"train": train, "val": val, "test": test}
 
 
 # ----------------------------------------------------------------------------- one seed
 
 def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict, test_records: list[dict],
-                 device, preset) -> dict:
+                 val_records: list[dict], device) -> dict:
     from core.bundle import Bundle, load_bundle
     from services.bench import evaluations
     from services.bench.training import train_stage
     from services.cli.train_tasks.detector import labelled_subset
 
+    from core.presets import get_preset
+    from services.bench.stopping import SELECTED
+
+    preset = get_preset(config.preset)
     s = f"seed{seed}"
-    steps = config.steps
+    rules = config.rules
 
     def train(name: str, *, label_budget: int | None = None, data_dir: Path = data["train"], **kw) -> Path:
         def run(d: Path) -> None:
             # A label budget trains on the first N records, as `n3dmap train detector --labels N` does.
             source = data_dir if label_budget is None else labelled_subset(data_dir, d, label_budget)
-            train_stage(config, run_dir=d, seed=seed, data_dir=source, **kw)
-        return stages.run(f"{s}/{name}", TRAIN_MARKER, run) / "bundle"
+            train_stage(config, run_dir=d, seed=seed, data_dir=source, heldout_records=val_records, **kw)
+        return stages.run(f"{s}/{name}", TRAIN_MARKER, run) / SELECTED
 
     def evaluate(name: str, fn: Callable[[], dict]) -> dict:
         stage_dir = stages.run(f"{s}/eval/{name}", EVAL_MARKER, lambda d: write_json(d / EVAL_MARKER, _jsonable(fn())))
         return json.loads((stage_dir / EVAL_MARKER).read_text())
 
-    pretrained = {arm: train(f"pretrain_{arm}", task="pretrain", steps=steps.pretrain,
+    pretrained = {arm: train(f"pretrain_{arm}", task="pretrain", rule=rules.pretrain,
                              task_options={"objective": arm}) for arm in PRETRAINED_ARMS}
     result: dict = {"detection": {}, "retrieval": {}, "occupancy": {}, "flow": {}}
 
@@ -144,7 +244,7 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
         for budget in config.budgets_sorted:
             name = detector_stage(arm, mode, budget)
             frozen = mode == "frozen"
-            bundle_dir = train(name, task="detector", steps=steps.detector, label_budget=budget,
+            bundle_dir = train(name, task="detector", rule=rules.detector, label_budget=budget,
                                task_options={"labels": None, "freeze_features": frozen},
                                init_bundle=pretrained.get(arm), freeze=("mapper",) if frozen else (),
                                batch_size=min(config.batch_size or preset.train.batch_size,
@@ -173,9 +273,9 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
     # volumes (it does not depend on the pretraining; the contrastive bundle gives it the occupancy
     # head). All are scored against the zero-motion row.
     from services.cli.eval_tasks import flow as eval_flow
-    flows = {arm: train(f"flow_{arm}", task="flow", steps=steps.flow, task_options={"inputs": "features"},
+    flows = {arm: train(f"flow_{arm}", task="flow", rule=rules.flow, task_options={"inputs": "features"},
                         init_bundle=pretrained[arm], freeze=("mapper",)) for arm in PRETRAINED_ARMS}
-    flows[VOLUME_FLOW] = train(f"flow_{VOLUME_FLOW}", task="flow", steps=steps.flow,
+    flows[VOLUME_FLOW] = train(f"flow_{VOLUME_FLOW}", task="flow", rule=rules.flow,
                                task_options={"inputs": "volume"}, init_bundle=pretrained["contrastive"],
                                freeze=("mapper",))
     for arm in (*PRETRAINED_ARMS, VOLUME_FLOW):
@@ -186,7 +286,7 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
     from core.eval.egomotion_metrics import summarize_errors
     from core.eval.moving_protocol import camera_setting
     from services.cli.eval_tasks import egomotion as eval_egomotion
-    ego_dir = train("egomotion", task="egomotion", steps=steps.egomotion)
+    ego_dir = train("egomotion", task="egomotion", rule=rules.egomotion)
     moving_cam = [r for r in test_records if r["rgb"].shape[0] > 1 and camera_setting(r, 0) == "moving"] or test_records
 
     def egomotion_metrics() -> dict:

@@ -3,16 +3,20 @@
 `plan_for(preset, seeds=..., quick=...)` gives the default plan of a preset; the CLI's flags replace
 single fields (`dataclasses.replace`). The plan fixes, for the whole benchmark:
 
-- data: `train_episodes` records for training (moving ego on every second record) and
-  `test_episodes` held-out records (generated from `data_seed + 1`, so no record is in both);
+- data: `train_episodes` records for training (moving ego on every second record),
+  `test_episodes` test records (generated from `data_seed + 1`) and `val_episodes` validation records
+  for the stopping rules (from `data_seed + 2`), so no record is in two of them;
 - seeds: one full set of trained models per seed (weights and data order; the data are shared);
-- steps per stage: pretraining (contrastive and regression), detector, flow, egomotion;
+- a stopping rule per stage (services.bench.stopping): pretraining (contrastive and regression), flow
+  and egomotion train until their loss on `val_episodes` held-out records stops improving (bounded);
+  the detector trains a fixed number of epochs over its labelled records (bounded);
 - label budgets: numbers of labelled training records the detector gets (None = all of them);
 - the detector variants: (pretraining arm, "frozen" | "finetuned") pairs; the random-init arm is
   trained end to end (frozen random features measure nothing the paper reports).
 
-`quick=True` is the test profile: a handful of records and a few steps per stage, so the whole
-pipeline runs in a couple of minutes on a 2-core CPU (numbers are then meaningless, only complete).
+`quick=True` is the test profile: a handful of records and 2 fixed steps per stage, so the whole
+pipeline runs in well under a minute on a 2-core CPU (numbers are then meaningless, only complete, and
+the report gives no verdicts).
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, replace
 
 from core.errors import N3dmapError
+from services.bench.stopping import StageRule
 
 ARMS = ("random", "regression", "contrastive")          # pretraining arms, weakest first
 PRETRAINED_ARMS = ("regression", "contrastive")          # arms that run a pretraining stage
@@ -36,18 +41,25 @@ class BenchConfigError(N3dmapError):
 
 
 @dataclass(frozen=True)
-class StageSteps:
-    """Optimisation steps of each training stage."""
+class StageRules:
+    """How long each training stage trains (services.bench.stopping.StageRule)."""
 
-    pretrain: int
-    detector: int
-    flow: int
-    egomotion: int
+    pretrain: StageRule
+    detector: StageRule
+    flow: StageRule
+    egomotion: StageRule
 
     def __post_init__(self) -> None:
-        for name, value in asdict(self).items():
-            if value < 1:
-                raise BenchConfigError(f"steps of stage {name!r} must be >= 1, got {value}")
+        for name, rule in vars(self).items():
+            if not isinstance(rule, StageRule):
+                raise BenchConfigError(f"stage {name!r} needs a StageRule, got {rule!r}")
+
+    def to_dict(self) -> dict:
+        return {name: rule.to_dict() for name, rule in vars(self).items()}
+
+    @staticmethod
+    def from_dict(d: dict) -> "StageRules":
+        return StageRules(**{name: StageRule(**d[name]) for name in ("pretrain", "detector", "flow", "egomotion")})
 
 
 @dataclass(frozen=True)
@@ -59,7 +71,8 @@ class BenchConfig:
     train_episodes: int
     test_episodes: int
     label_budgets: tuple[int | None, ...]      # None: every training record is labelled
-    steps: StageSteps
+    rules: StageRules
+    val_episodes: int = 8                      # held-out records of the plateau rules (never the test set)
     detector_variants: tuple[tuple[str, str], ...] = DEFAULT_VARIANTS
     data_seed: int = 0
     batch_size: int | None = None              # records per step (None: the preset's default)
@@ -78,9 +91,9 @@ class BenchConfig:
         object.__setattr__(self, "detector_variants", tuple((str(a), str(m)) for a, m in self.detector_variants))
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
             raise BenchConfigError(f"seeds must be distinct and at least one, got {list(self.seeds)}")
-        if self.train_episodes < 2 or self.test_episodes < 1:
-            raise BenchConfigError(f"need >= 2 training and >= 1 test records, got {self.train_episodes} "
-                                   f"and {self.test_episodes}")
+        if self.train_episodes < 2 or self.test_episodes < 1 or self.val_episodes < 2:
+            raise BenchConfigError(f"need >= 2 training, >= 2 validation and >= 1 test records, got "
+                                   f"{self.train_episodes}, {self.val_episodes} and {self.test_episodes}")
         if not self.label_budgets:
             raise BenchConfigError("at least one label budget is needed")
         for b in self.label_budgets:
@@ -110,21 +123,48 @@ class BenchConfig:
         d["seeds"] = list(self.seeds)
         d["label_budgets"] = ["all" if b is None else b for b in self.label_budgets]
         d["detector_variants"] = [list(v) for v in self.detector_variants]
+        d["rules"] = self.rules.to_dict()
         return d
 
+    @staticmethod
+    def from_dict(d: dict) -> "BenchConfig":
+        """Inverse of to_dict (a seed worker process rebuilds the plan from OUT/work/plan.json)."""
+        d = dict(d)
+        d["rules"] = StageRules.from_dict(d["rules"])
+        d["label_budgets"] = tuple(None if b == "all" else int(b) for b in d["label_budgets"])
+        d["detector_variants"] = tuple(tuple(v) for v in d["detector_variants"])
+        d["seeds"] = tuple(d["seeds"])
+        return BenchConfig(**d)
 
-# Per preset: (train, test) episodes, label budgets, StageSteps — the full and the quick profile.
+
+def _plateau(eval_every: int, min_steps: int, max_steps: int) -> StageRule:
+    return StageRule(kind="plateau", eval_every=eval_every, patience=3, min_improvement=0.01,
+                     min_steps=min_steps, max_steps=max_steps)
+
+
+def _epochs(epochs: int, min_steps: int, max_steps: int) -> StageRule:
+    return StageRule(kind="epochs", epochs=epochs, min_steps=min_steps, max_steps=max_steps)
+
+
+# Per preset: records, label budgets and stopping rules — the full and the quick profile. Plateau rules
+# stop on the held-out loss (val_episodes records); the detector gets a fixed number of epochs over its
+# labelled records (no labelled held-out set: with 2 labels there is none to spare).
 _PROFILES: dict[tuple[str, bool], dict] = {
-    ("tiny", False): dict(train_episodes=12, test_episodes=8, label_budgets=(2, 6, None),
-                          steps=StageSteps(pretrain=100, detector=40, flow=60, egomotion=60)),
-    # small: sized so that 2 seeds finish in about 2 hours on a 2-core CPU (measured; README).
-    ("small", False): dict(train_episodes=64, test_episodes=16, label_budgets=(2, 8, None),
-                           steps=StageSteps(pretrain=300, detector=100, flow=100, egomotion=100)),
-    ("paper", False): dict(train_episodes=1024, test_episodes=100, label_budgets=(8, 32, 128, 512, None),
-                           steps=StageSteps(pretrain=50_000, detector=10_000, flow=10_000, egomotion=10_000)),
+    ("tiny", False): dict(train_episodes=48, val_episodes=8, test_episodes=16, label_budgets=(2, 8, None),
+                          rules=StageRules(pretrain=_plateau(50, 200, 1500), detector=_epochs(40, 30, 1000),
+                                           flow=_plateau(50, 100, 1000), egomotion=_plateau(50, 100, 1000))),
+    ("small", False): dict(train_episodes=64, val_episodes=8, test_episodes=16, label_budgets=(2, 8, None),
+                           rules=StageRules(pretrain=_plateau(100, 300, 3000), detector=_epochs(40, 50, 2000),
+                                            flow=_plateau(100, 200, 2000), egomotion=_plateau(100, 200, 2000))),
+    ("paper", False): dict(train_episodes=1024, val_episodes=32, test_episodes=100,
+                           label_budgets=(8, 32, 128, 512, None),
+                           rules=StageRules(pretrain=_plateau(2000, 10_000, 200_000),
+                                            detector=_epochs(40, 500, 20_000), flow=_plateau(1000, 5000, 50_000),
+                                            egomotion=_plateau(1000, 5000, 50_000))),
 }
-_QUICK = dict(train_episodes=4, test_episodes=2, label_budgets=(2, None),
-              steps=StageSteps(pretrain=2, detector=2, flow=2, egomotion=2), retrieval_per_example=4,
+_QUICK = dict(train_episodes=4, val_episodes=2, test_episodes=2, label_budgets=(2, None),
+              rules=StageRules(pretrain=StageRule.fixed(2), detector=StageRule.fixed(2), flow=StageRule.fixed(2),
+                               egomotion=StageRule.fixed(2)), retrieval_per_example=4,
               detector_variants=(("random", "finetuned"), ("regression", "frozen"), ("contrastive", "frozen"),
                                  ("contrastive", "finetuned")))
 
@@ -139,6 +179,10 @@ def plan_for(preset: str, *, seeds: tuple[int, ...] = (0,), quick: bool = False,
     return BenchConfig(preset=preset, seeds=tuple(seeds), quick=quick, **base)
 
 
-def with_steps(config: BenchConfig, **steps) -> BenchConfig:
-    """`config` with some stage steps replaced (pretrain=, detector=, flow=, egomotion=)."""
-    return replace(config, steps=replace(config.steps, **steps))
+def with_steps(config: BenchConfig, **steps: int) -> BenchConfig:
+    """`config` with some stages trained for a fixed number of steps (pretrain=, detector=, flow=,
+    egomotion=) instead of their stopping rule."""
+    for name, value in steps.items():
+        if value < 1:
+            raise BenchConfigError(f"steps of stage {name!r} must be >= 1, got {value}")
+    return replace(config, rules=replace(config.rules, **{k: StageRule.fixed(v) for k, v in steps.items()}))

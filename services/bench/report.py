@@ -19,11 +19,12 @@ from matplotlib.figure import Figure
 
 from services.bench import aggregate as agg
 from services.bench.claims import check_claims
+from services.bench.judge import FLOORS, MIN_SEEDS
 from services.bench.plan import PRETRAINED_ARMS, BenchConfig
 from services.reports import Report
 
 METRIC_KEYS = ("config", "seeds", "wall_time_s", "stage_seconds", "total_stage_seconds", "detection",
-               "retrieval", "flow", "moving", "occupancy", "egomotion", "claims", "per_seed")
+               "retrieval", "flow", "moving", "occupancy", "egomotion", "claims", "per_seed", "stopping")
 
 
 def _budget_names(config: BenchConfig) -> list[str]:
@@ -42,26 +43,28 @@ def build_tables(config: BenchConfig, per_seed: dict) -> dict:
 
 
 def write_bench_report(out: Path, *, config: BenchConfig, results: dict, stage_seconds: dict,
-                       wall_time_s: float, ran: list[str]) -> dict:
+                       wall_time_s: float, ran: list[str], stopping: dict | None = None) -> dict:
     """Write the report into `out`; returns the metrics dict written under "metrics"."""
     per_seed = results["seeds"]
     tables = build_tables(config, per_seed)
     budgets = _budget_names(config)
-    claims = check_claims(tables, budgets=budgets)
+    claims = check_claims(per_seed, budgets=budgets, variants=[f"{a}/{m}" for a, m in config.detector_variants],
+                          quick=config.quick)
     total_stages = sum(v for v in stage_seconds.values() if isinstance(v, float) and math.isfinite(v))
 
     report = Report(kind="bench_paper", title=f"Paper benchmark on the synthetic world ({config.preset} preset)",
                     data=str(out / "work" / "data"),
                     settings={"preset": config.preset, "seeds": list(config.seeds), "profile": "quick" if config.quick else "full",
                               "train_records": config.train_episodes, "test_records": config.test_episodes,
-                              "label_budgets": budgets, "steps": vars(config.steps),
+                              "validation_records": config.val_episodes,
+                              "label_budgets": budgets, "stopping_rules": {k: r.describe() for k, r in vars(config.rules).items()},
                               "wall_time_this_run_s": round(wall_time_s, 1), "wall_time_all_stages_s": round(total_stages, 1)})
     report.text(f"Every number is the mean over {len(config.seeds)} seed(s) {list(config.seeds)}"
                 + (" ± the standard deviation over seeds" if len(config.seeds) > 1 else " (one seed: no spread)")
                 + ". Seeds change the weights' initialisation and the data order; the synthetic train/test data "
-                f"are shared (data seed {config.data_seed}, test seed {config.data_seed + 1}). Training steps per stage: "
-                f"pretrain {config.steps.pretrain}, detector {config.steps.detector}, flow {config.steps.flow}, "
-                f"egomotion {config.steps.egomotion}." + (" **Quick profile: the numbers only show the pipeline "
+                f"are shared (data seed {config.data_seed}, test seed {config.data_seed + 1}, validation seed "
+                f"{config.data_seed + 2}). How long each stage trains is its stopping rule's call (section "
+                "'Training: stopping rules and steps run')." + (" **Quick profile: the numbers only show the pipeline "
                                                         "runs; they say nothing about the paper.**" if config.quick else ""))
 
     _detection_section(report, tables["detection"], config, budgets)
@@ -70,13 +73,14 @@ def write_bench_report(out: Path, *, config: BenchConfig, results: dict, stage_s
     _moving_section(report, tables["moving"], config)
     _occupancy_section(report, tables["occupancy"])
     _egomotion_section(report, tables["egomotion"])
-    _claims_section(report, claims)
+    _claims_section(report, claims, config)
+    _stopping_section(report, config, stopping or {})
     _stages_section(report, stage_seconds, ran, wall_time_s, total_stages)
 
     report.metrics = {
         "config": config.to_dict(), "seeds": list(config.seeds), "wall_time_s": wall_time_s,
         "stage_seconds": stage_seconds, "total_stage_seconds": total_stages, **tables, "claims": claims,
-        "per_seed": per_seed,
+        "per_seed": per_seed, "stopping": stopping or {},
     }
     report.write(out)
     return report.metrics
@@ -185,16 +189,45 @@ def _egomotion_section(report: Report, ego: dict) -> None:
                  [[m, agg.fmt(v["rot_rad"], 4), agg.fmt(v["trans_m"], 4), agg.fmt(v["pairs"], 0)] for m, v in ego.items()])
 
 
-def _claims_section(report: Report, claims: list[dict]) -> None:
+def _claims_section(report: Report, claims: list[dict], config: BenchConfig) -> None:
     report.heading("Claims")
-    report.text("Each claim of the paper, the fixed criterion it is checked with, our numbers, and the verdict "
-                "(holds / does not hold / undetermined when a number is missing). \"A > B\" in a criterion means "
-                "by more than 1 % (relative) of the means: closer values are a tie, which does not hold.")
-    verdict = {True: "holds", False: "does not hold", None: "undetermined"}
+    if config.quick:
+        report.text("**No verdicts: this is the quick profile**, whose few training steps per stage show that the "
+                    "pipeline runs and say nothing about the paper. Each claim's numbers are listed; metrics.json "
+                    "records `holds: null` for every claim.")
+    else:
+        report.text(f"Each claim is judged seed by seed (seeds paired: each seed's models are compared with each "
+                    f"other). A claim **holds** only when there are at least {MIN_SEEDS} seeds and every seed shows "
+                    "the paper's direction by at least the metric's floor; it **does not hold** when a seed does "
+                    "not; it is **undetermined** when there are fewer seeds, a number is missing, or both sides "
+                    "of a comparison lie below the metric's floor of meaning (e.g. two APs under 0.05).")
+        report.table(["metric", "margin (least difference that counts)", "floor of meaning"],
+                     [[f.name, f"{f.margin:g}", "–" if f.meaning is None else f"both < {f.meaning:g}"]
+                      for f in FLOORS.values()])
     for c in claims:
-        report.text(f"- **{c['id']}: {verdict[c['holds']]}.** {c['claim']} Criterion: {c['criterion']}. "
-                    f"Ours: {c['ours']}. Paper: {c['paper']}.")
-    report.table(["claim", "verdict"], [[c["id"], verdict[c["holds"]]] for c in claims])
+        report.text(f"- **{c['id']}: {c['verdict']}** ({c['reason']}). {c['claim']} Criterion: {c['criterion']}. "
+                    f"Ours (mean ± std [per seed]): {c['ours']}. Paper: {c['paper']}.")
+    seeds = sorted({s for c in claims for s in c["outcomes"]}, key=lambda s: (not s.isdigit(), int(s) if s.isdigit() else s))
+    report.table(["claim", "verdict", *[f"seed {s}" for s in seeds]],
+                 [[c["id"], c["verdict"], *[" / ".join(c["outcomes"].get(s, ["–"])) for s in seeds]] for c in claims])
+    if not config.quick:
+        held = sum(c["holds"] is True for c in claims)
+        report.text(f"{held} of {len(claims)} claims hold. Per-seed cells list each condition's outcome: agree, "
+                    "disagree, vacuous (below the floor of meaning) or missing.")
+
+
+def _stopping_section(report: Report, config: BenchConfig, stopping: dict) -> None:
+    report.heading("Training: stopping rules and steps run")
+    report.text("Each stage trains by its rule; plateau rules score the task's own loss on the validation records "
+                f"({config.val_episodes}, never the test set) and keep the best evaluation's weights.")
+    report.table(["stage", "rule"], [[name, rule.describe()] for name, rule in vars(config.rules).items()])
+    rows = []
+    for seed, stages in stopping.items():
+        for stage, info in sorted(stages.items()):
+            rows.append([seed, stage, info.get("steps_run"), info.get("selected_step"), info.get("reason", "")])
+    if rows:
+        report.text("Steps each stage actually ran, the step whose weights it kept, and why it stopped:")
+        report.table(["seed", "stage", "steps run", "kept step", "why it stopped"], rows)
 
 
 def _stages_section(report: Report, seconds: dict, ran: list[str], wall: float, total: float) -> None:

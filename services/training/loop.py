@@ -203,7 +203,10 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
     names: list[str] | None = None
     sums: torch.Tensor | None = None
     last: dict[str, float] = {}
-    epoch = 0
+    # A resumed run starts at an epoch index of its own (the step it resumes from), so its shuffles differ
+    # from the ones before the cut: a run trained in chunks (the benchmark's held-out stopping rule)
+    # would otherwise replay the first epochs' batch order at the start of every chunk.
+    epoch = start_step
     while step < config.steps:
         batches_this_epoch = 0
         for records in session.epoch_batches(epoch):
