@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from typing import Iterable, Iterator
 
 from core.errors import N3dmapError
+from services.threads import usable_cpus
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -95,17 +96,9 @@ def _read_rendered(path: str, index: int) -> dict:
 POOL_MIN_PIXELS = 20_000_000
 
 
-def usable_cpus() -> int:
-    import os
-
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
-
-
 def default_jobs(*, records: int, pixels_per_record: int) -> int:
-    """min(usable CPUs, 4, records) render processes, or 1 when the whole job is too small to repay
+    """min(usable CPUs, 4, records) render processes (one torch thread each, so processes × threads never
+    exceeds the CPUs), or 1 when the whole job is too small to repay
     the workers' start-up (POOL_MIN_PIXELS); more processes than cores only add memory and contention."""
     if records * pixels_per_record < POOL_MIN_PIXELS:
         return 1

@@ -59,7 +59,9 @@ def add_common_train_args(parser: argparse.ArgumentParser) -> None:
     ray = parser.add_argument_group("workers (Ray Train)")
     ray.add_argument("--workers", type=int, default=2,
                      help="Ray Train workers (DDP); 0 runs a plain loop in this process without Ray")
-    ray.add_argument("--cpus-per-worker", type=int, default=1)
+    ray.add_argument("--cpus-per-worker", type=int, default=1,
+                     help="CPUs Ray reserves per worker (on a cluster also its torch threads; on the embedded Ray "
+                          "the usable CPUs are shared out so that workers × threads never exceeds them)")
     ray.add_argument("--gpus-per-worker", type=float, default=0.0)
     ray.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     ray.add_argument("--max-failures", type=int, default=2,
@@ -124,6 +126,15 @@ def run_train(task_name: str, args: argparse.Namespace, task_options: dict) -> i
     if not Path(args.data).is_dir():
         raise DataError(f"--data {args.data}: no such dataset directory")
     config = config_from_args(task_name, args, task_options)
+    if config.workers == 0 and not config.attach:
+        # One process trains: it gets every usable CPU (Ray workers get theirs in services.training.job).
+        import torch
+
+        from services.threads import plan_threads
+
+        plan = plan_threads(processes=1)
+        torch.set_num_threads(plan.threads)
+        print(f"threads: {plan.describe()}", flush=True)
     summary = run_training(config)
     outcome = summary.outcome
     if outcome.start_step >= outcome.step:

@@ -167,9 +167,10 @@ def _run_on_ray(config: TrainJobConfig) -> tuple[LoopOutcome, Path | None]:
         resources = {"CPU": config.cpus_per_worker}
         if config.gpus_per_worker:
             resources["GPU"] = config.gpus_per_worker
+        threads = worker_threads(config)
         trainer = TorchTrainer(
             ray_train_func,
-            train_loop_config={"config": config.to_dict(), "threads": config.cpus_per_worker},
+            train_loop_config={"config": config.to_dict(), "threads": threads},
             scaling_config=ScalingConfig(num_workers=config.workers, use_gpu=config.gpus_per_worker > 0,
                                          resources_per_worker=resources),
             run_config=RunConfig(
@@ -192,6 +193,20 @@ def _run_on_ray(config: TrainJobConfig) -> tuple[LoopOutcome, Path | None]:
     finally:
         if started_here:
             ray.shutdown()
+
+
+def worker_threads(config: TrainJobConfig) -> int:
+    """Torch threads of each Ray Train worker. On the embedded local Ray the workers share this machine:
+    its usable CPUs are shared out (processes × threads ≤ CPUs; more workers than CPUs get one thread
+    each and the plan, printed, says it is oversubscribed). On a cluster (attach) each worker gets the
+    CPUs Ray reserved for it."""
+    if config.attach:
+        return config.cpus_per_worker
+    from services.threads import plan_threads
+
+    plan = plan_threads(processes=config.workers, cap_processes=False)
+    print(f"threads: {plan.describe()}", flush=True)
+    return plan.threads
 
 
 def _root_cause_line(error: BaseException) -> str:

@@ -131,7 +131,7 @@ def main() -> None:
     import torch
 
     from core.presets import get_preset
-    from services.cli.render_pool import usable_cpus
+    from services.threads import usable_cpus
 
     presets = [get_preset(name) for name in args.presets]
     print(f"torch {torch.__version__}; {usable_cpus()} usable CPUs (os.cpu_count {os.cpu_count()}); "

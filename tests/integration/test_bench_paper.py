@@ -1,7 +1,8 @@
-"""`n3dmap bench paper --preset tiny --quick` as a real process: every stage runs, the report holds every
-table and metrics.json every key, each claim is stated with numbers and a verdict, and a rerun skips
-every finished stage (resume). The quick profile trains for 2 steps per stage, so nothing here asserts
-that the paper's claims hold — only that the report says whether they do.
+"""`n3dmap bench paper --preset tiny --quick` as a real process, two seeds in two worker processes:
+every stage runs, the report holds every table and metrics.json every key, each claim is stated with
+its numbers per seed, the thread plan is printed and fits the CPUs, and a rerun skips every finished
+stage (resume). The quick profile trains for 2 steps per stage, so its report must give no verdicts:
+every claim is "not judged" with `holds: null`.
 """
 
 import json
@@ -29,7 +30,7 @@ CLAIMS = ("detection_few_labels", "detection_more_labels", "detection_gain_low_d
 
 def _bench(out: Path) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "services.cli.main", "bench", "paper", "--preset", "tiny", "--quick",
-           "--seeds", "1", "--out", str(out), "--device", "cpu", "--threads", "1"]
+           "--seeds", "2", "--parallel-seeds", "2", "--out", str(out), "--device", "cpu"]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return proc
@@ -52,16 +53,19 @@ def test_report_has_every_table_plot_and_claim(bench_run):
         assert f"({plot})" in report
     # Detection rows: every variant of the quick plan, a column per label budget.
     for variant in ("random/finetuned", "regression/frozen", "contrastive/frozen", "contrastive/finetuned"):
-        assert re.search(rf"\| {re.escape(variant)} \| [0-9.–]+ \| [0-9.–]+ \|", report), variant
+        assert re.search(rf"\| {re.escape(variant)} \| [0-9.]+ ± [0-9.]+ \| [0-9.]+ ± [0-9.]+ \|", report), variant
     # Flow table: the zero-motion row and one row per pretraining.
     for row in ("zero-motion", "regression", "contrastive"):
-        assert re.search(rf"\| {row} \| [0-9.]+ \| [0-9.]+ \| [0-9.]+ \|", report), row
+        assert re.search(rf"\| {row} \| [0-9.]+ ± [0-9.]+ \| [0-9.]+ ± [0-9.]+ \| [0-9.]+ ± [0-9.]+ \|", report), row
     for row in ("model", "icp", "identity"):
         assert f"| {row} |" in report
+    assert "No verdicts: this is the quick profile" in report
     for claim in CLAIMS:
         line = next(l for l in report.splitlines() if l.startswith(f"- **{claim}:"))
-        assert re.search(r"\*\*[a-z_0-9]+: (holds|does not hold|undetermined)\.\*\*", line), line
-        assert re.search(r"Ours: .*\d\.\d{3}", line), line   # the verdict comes with numbers
+        assert re.search(r"\*\*[a-z_0-9]+: not judged\*\*", line), line
+        # mean ± std, then each seed's value in brackets
+        assert re.search(r"Ours \(mean ± std \[per seed\]\): .*\d\.\d{3,4} ± \d\.\d{3,4} \[\d\.\d{3,4}, \d\.\d{3,4}\]", line), line
+    assert "## Training: stopping rules and steps run" in report and "fixed 2 steps" in report
 
 
 def test_metrics_json_has_every_key(bench_run):
@@ -69,15 +73,16 @@ def test_metrics_json_has_every_key(bench_run):
     payload = json.loads((out / "metrics.json").read_text())
     metrics = payload["metrics"]
     assert set(METRIC_KEYS) <= set(metrics)
-    assert metrics["seeds"] == [0] and metrics["config"]["quick"] is True
+    assert metrics["seeds"] == [0, 1] and metrics["config"]["quick"] is True
     assert metrics["wall_time_s"] > 0 and metrics["total_stage_seconds"] > 0
     assert [c["id"] for c in metrics["claims"]] == list(CLAIMS)
     for claim in metrics["claims"]:
-        assert claim["holds"] in (True, False, None) and claim["ours"] and claim["criterion"]
+        assert claim["holds"] is None and claim["verdict"] == "not judged" and claim["ours"] and claim["criterion"]
+        assert set(claim["per_seed"]) == {"0", "1"}
     det = metrics["detection"]["contrastive/frozen"]
     assert set(det) == {"2", "all"} and set(det["2"]) == {"0.33", "0.5", "0.75"}
     for cell in (det["2"]["0.5"], metrics["flow"]["zero-motion"]["moving"], metrics["occupancy"]["contrastive"]["acc_all"]):
-        assert cell["n"] == 1 and 0.0 <= cell["mean"] and cell["std"] == 0.0
+        assert cell["n"] == 2 and 0.0 <= cell["mean"] and cell["std"] >= 0.0
     for arm in ("random", "regression", "contrastive"):
         for dim in ("2d", "3d"):
             p = [metrics["retrieval"][arm][dim][k]["mean"] for k in ("p@1", "p@5", "p@10")]
@@ -93,13 +98,33 @@ def test_metrics_json_has_every_key(bench_run):
         assert bundle["modules"]["flow"]["config"]["inputs"] == inputs
     # Every stage left its timing, and the per-seed raw results are kept.
     assert all(s >= 0 for s in metrics["stage_seconds"].values())
-    assert "0" in metrics["per_seed"]
+    assert set(metrics["per_seed"]) == {"0", "1"}
+    # Each training stage says how long it trained and why (the quick profile: a fixed 2 steps).
+    pretrain = metrics["stopping"]["1"]["pretrain_contrastive"]
+    assert pretrain["steps_run"] == 2 and pretrain["rule"]["kind"] == "fixed"
 
 
 def test_rerun_skips_finished_stages(bench_run):
     out, first = bench_run
+    journal = out / "work" / "stages.jsonl"
+    before = len(journal.read_text().splitlines())
     second = _bench(out)
     ran = [l for l in second.stdout.splitlines() if l.startswith("[bench]") and l.endswith(": running")]
     skipped = [l for l in second.stdout.splitlines() if "skipped" in l]
     assert ran == [] and len(skipped) == len(json.loads((out / "metrics.json").read_text())["metrics"]["stage_seconds"])
+    # The seed workers of the rerun (their output goes to their logs) skipped every stage too.
+    appended = [json.loads(l) for l in journal.read_text().splitlines()[before:]]
+    assert appended and {e["status"] for e in appended} == {"skipped"}
     assert (out / "report.md").is_file()
+
+
+def test_thread_plan_is_printed_and_fits_the_cpus(bench_run):
+    from services.threads import usable_cpus
+
+    _, first = bench_run
+    plans = re.findall(r"(\d+) process\(es\) × (\d+) torch thread\(s\) on (\d+) usable CPU", first.stdout)
+    assert len(plans) == 2, first.stdout[:2000]          # sequential stages, then the seeds in parallel
+    for processes, threads, cpus in plans:
+        assert int(cpus) == usable_cpus() and int(processes) * int(threads) <= int(cpus)
+    workers = re.findall(r"seed (\d): worker pid \d+", first.stdout)
+    assert sorted(workers) == ["0", "1"]

@@ -1,0 +1,151 @@
+"""The strict judge: each case the honest-verdicts rules name, with the verdict it must give.
+
+The slow, obvious reference here is the rule written out by hand per case; `check_claims` is checked
+on per-seed results built by hand, so every number a verdict rests on is visible in the test.
+"""
+
+import pytest
+
+from services.bench.claims import check_claims
+from services.bench.judge import (
+    FAILS, FLOORS, HOLDS, NOT_JUDGED, UNDETERMINED, AtLeast, Better, Positive, RatioAtMost, WithinOf, derive, judge,
+)
+
+AP, EPE, GAIN = FLOORS["ap"], FLOORS["epe"], FLOORS["gain"]
+
+
+def seeds(**columns):
+    """seeds(a=[...], b=[...]) -> {"0": {"a": .., "b": ..}, "1": ...} (one list entry per seed)."""
+    n = len(next(iter(columns.values())))
+    return {str(i): {k: v[i] for k, v in columns.items()} for i in range(n)}
+
+
+def test_every_seed_agreeing_by_the_floor_holds():
+    v = judge([Better("c", "r", AP)], seeds(c=[0.60, 0.62, 0.58], r=[0.55, 0.57, 0.55]))
+    assert (v.holds, v.verdict) == (True, HOLDS)
+    assert v.outcomes == {"0": ["agree"], "1": ["agree"], "2": ["agree"]}
+
+
+def test_vacuous_near_zero_comparison_is_undetermined():
+    # the old report's moving_camera_stabilised: 0.005 vs 0.001 — both below the AP floor of meaning
+    v = judge([Better("ego", "2.5D", AP)], seeds(**{"ego": [0.005, 0.03, 0.04], "2.5D": [0.001, 0.0, 0.0]}))
+    assert (v.holds, v.verdict) == (None, UNDETERMINED)
+    assert "floor of meaning" in v.reason
+    # two zeros are "within 0.1" of each other: vacuous too, not "holds"
+    w = judge([WithinOf("a", "b", 0.1, AP)], seeds(a=[0.0, 0.01, 0.0], b=[0.0, 0.0, 0.02]))
+    assert w.verdict == UNDETERMINED and w.outcomes["0"] == ["vacuous"]
+
+
+def test_one_seed_disagreeing_does_not_hold():
+    v = judge([Better("c", "r", AP)], seeds(c=[0.60, 0.62, 0.50], r=[0.55, 0.57, 0.55]))
+    assert (v.holds, v.verdict) == (False, FAILS)
+    assert "seed(s) 2" in v.reason and v.outcomes["2"] == ["disagree"]
+
+
+def test_gap_below_the_floor_on_one_seed_does_not_hold():
+    # right direction, but 0.01 < the 0.02 margin on seed 1
+    v = judge([Better("c", "r", AP)], seeds(c=[0.60, 0.58, 0.60], r=[0.55, 0.57, 0.55]))
+    assert v.verdict == FAILS and v.outcomes["1"] == ["disagree"]
+
+
+def test_spread_larger_than_the_gap_does_not_hold():
+    # the old report's detection_more_labels: 0.627 ± 0.014 vs 0.707 ± 0.105 "held" on means; per seed
+    # the all-labels detector loses on one seed
+    v = judge([Better("all", "few", AP)], seeds(all=[0.81, 0.60, 0.71], few=[0.64, 0.61, 0.63]))
+    mean_all, mean_few = sum([0.81, 0.60, 0.71]) / 3, sum([0.64, 0.61, 0.63]) / 3
+    assert mean_all - mean_few > 0.02          # the means alone would have said "holds"
+    assert v.verdict == FAILS and v.outcomes["1"] == ["disagree"]
+
+
+def test_negative_gain_does_not_hold_even_when_it_shrinks_less():
+    # pretraining hurts at both budgets (gain −0.02 at few, −0.10 at all): "gain larger at few labels"
+    # is true of the numbers, but there is no gain — the claim must not hold
+    values = seeds(c_few=[0.50, 0.51, 0.49], n_few=[0.52, 0.53, 0.51], c_all=[0.60, 0.61, 0.59],
+                   n_all=[0.70, 0.71, 0.69])
+    derive(values, "gain_few", lambda c, n: c - n, "c_few", "n_few")
+    derive(values, "gain_all", lambda c, n: c - n, "c_all", "n_all")
+    v = judge([Positive("gain_few", AP, of=("c_few", "n_few")), Better("gain_few", "gain_all", GAIN)], values)
+    assert v.verdict == FAILS
+    assert all(row == ["disagree", "agree"] for row in v.outcomes.values())
+
+
+def test_fewer_than_three_seeds_is_undetermined_whatever_they_show():
+    v = judge([Better("c", "r", AP)], seeds(c=[0.9, 0.9], r=[0.1, 0.1]))
+    assert (v.holds, v.verdict) == (None, UNDETERMINED) and "at least 3" in v.reason
+    assert v.outcomes == {"0": ["agree"], "1": ["agree"]}   # still reported per seed
+
+
+def test_quick_profile_gives_no_verdict():
+    v = judge([Better("c", "r", AP)], seeds(c=[0.9, 0.9, 0.9], r=[0.1, 0.1, 0.1]), quick=True)
+    assert (v.holds, v.verdict) == (None, NOT_JUDGED)
+
+
+def test_missing_number_is_undetermined():
+    v = judge([Better("c", "r", AP)], seeds(c=[0.9, None, 0.9], r=[0.1, 0.1, 0.1]))
+    assert v.verdict == UNDETERMINED and "seed 1" in v.reason
+
+
+def test_lower_is_better_and_absolute_targets():
+    assert judge([Better("c", "z", EPE)], seeds(c=[3.3, 3.5, 3.4], z=[7.0, 6.9, 7.1])).verdict == HOLDS
+    assert judge([Better("c", "z", EPE)], seeds(c=[1.90, 1.85, 1.88], z=[1.89, 1.89, 1.89])).verdict == FAILS
+    occ = seeds(occ=[0.97, 0.96, 0.951], free=[0.98, 0.99, 0.97])
+    assert judge([AtLeast("occ", 0.95), AtLeast("free", 0.95)], occ).verdict == HOLDS
+    occ["2"]["free"] = 0.949
+    assert judge([AtLeast("occ", 0.95), AtLeast("free", 0.95)], occ).verdict == FAILS
+    ego = seeds(m=[0.03, 0.035, 0.039], icp=[0.026, 0.026, 0.026])
+    assert judge([RatioAtMost("m", "icp", 1.5)], ego).verdict == HOLDS
+    ego["1"]["m"] = 0.04   # 0.04 > 1.5 × 0.026 = 0.039
+    assert judge([RatioAtMost("m", "icp", 1.5)], ego).verdict == FAILS
+
+
+def _result(c_few, r_few, n_few, c_all, n_all, *, ret=(0.30, 0.10), epe=(3.3, 5.5, 7.0)):
+    det = {"random/finetuned/2": n_few, "random/finetuned/all": n_all, "regression/finetuned/2": r_few,
+           "regression/finetuned/all": 0.5, "contrastive/finetuned/2": c_few, "contrastive/finetuned/all": c_all}
+    return {
+        "detection": {k: {"map": {"0.5": v}} for k, v in det.items()},
+        "retrieval": {arm: {d: {"p@1": p} for d in ("2d", "3d")}
+                      for arm, p in (("contrastive", ret[0]), ("regression", ret[1]), ("random", 0.0))},
+        "flow": {"contrastive": {"model": {"epe_l1_moving": epe[0]}, "zero_motion": {"epe_l1_moving": epe[2]}},
+                 "regression": {"model": {"epe_l1_moving": epe[1]}}},
+        "moving": {"static": {"contrastive, GT egomotion": {"ap": 0.5}, "2.5D Farneback": {"ap": 0.3},
+                              "regression, GT egomotion": {"ap": 0.2}},
+                   "moving": {"contrastive, egomotion module": {"ap": 0.005}, "contrastive, GT egomotion": {"ap": 0.0},
+                              "2.5D Farneback": {"ap": 0.001}}},
+        "occupancy": {"contrastive": {"acc_occupied": 0.97, "acc_free": 0.90, "acc_all": 0.95}},
+        "egomotion": {"methods": {"model": {"rot_err_rad_mean": 0.1, "trans_err_m_mean": 0.04},
+                                  "icp": {"rot_err_rad_mean": 0.09, "trans_err_m_mean": 0.04}}},
+    }
+
+
+def test_check_claims_judges_per_seed_results():
+    per_seed = {"0": _result(0.60, 0.50, 0.40, 0.70, 0.65), "1": _result(0.62, 0.52, 0.41, 0.71, 0.66),
+                "2": _result(0.61, 0.51, 0.39, 0.72, 0.64)}
+    claims = {c["id"]: c for c in check_claims(per_seed, budgets=["2", "all"])}
+    assert claims["detection_few_labels"]["verdict"] == HOLDS
+    assert claims["detection_more_labels"]["verdict"] == HOLDS
+    assert claims["detection_gain_low_data"]["verdict"] == HOLDS      # gains 0.2 at 2, 0.05 at all
+    assert claims["retrieval_2d"]["verdict"] == HOLDS and claims["flow_vs_zero_motion"]["verdict"] == HOLDS
+    assert claims["flow_contrastive_vs_regression"]["verdict"] == HOLDS
+    assert claims["moving_static_vs_2p5d"]["verdict"] == HOLDS
+    assert claims["moving_camera_stabilised"]["verdict"] == UNDETERMINED   # 0.005 / 0.000 / 0.001: vacuous
+    assert claims["occupancy_accuracy"]["verdict"] == FAILS               # free 0.90 < 0.95
+    assert claims["egomotion_vs_icp"]["verdict"] == HOLDS                 # 0.1 ≤ 1.5·0.09, 0.04 ≤ 1.5·0.04
+    few = claims["detection_few_labels"]
+    assert few["per_seed"]["1"] == {"contrastive": 0.62, "regression": 0.52, "random": 0.41}
+    assert "0.610 ± 0.008 [0.600, 0.620, 0.610]" in few["ours"]           # mean ± std beside each seed
+    assert few["holds"] is True and claims["moving_camera_stabilised"]["holds"] is None
+
+
+def test_check_claims_one_flipped_seed_and_quick():
+    per_seed = {"0": _result(0.60, 0.50, 0.40, 0.70, 0.65), "1": _result(0.40, 0.50, 0.60, 0.71, 0.66),
+                "2": _result(0.61, 0.51, 0.39, 0.72, 0.64)}
+    claims = {c["id"]: c for c in check_claims(per_seed, budgets=["2", "all"])}
+    assert claims["detection_few_labels"]["verdict"] == FAILS and "seed(s) 1" in claims["detection_few_labels"]["reason"]
+    quick = check_claims(per_seed, budgets=["2", "all"], quick=True)
+    assert {c["holds"] for c in quick} == {None} and {c["verdict"] for c in quick} == {NOT_JUDGED}
+
+
+@pytest.mark.parametrize("n", [1, 2])
+def test_check_claims_with_too_few_seeds_never_holds(n):
+    per_seed = {str(i): _result(0.60, 0.50, 0.40, 0.70, 0.65) for i in range(n)}
+    assert {c["verdict"] for c in check_claims(per_seed, budgets=["2", "all"])} == {UNDETERMINED}
