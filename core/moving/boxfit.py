@@ -62,16 +62,53 @@ def min_area_rectangle(points: np.ndarray):
     return centre, axes[best], np.array([span_a[best], span_p[best]])
 
 
-def fit_box_to_points(xyz: np.ndarray, *, pad: float = 0.0) -> np.ndarray:
+def l_shape_rectangle(points: np.ndarray, *, floor: float, step_deg: float = 1.0):
+    """Rectangle around N×2 points (x, z) of a surface seen from one side: the orientation whose
+    rectangle has the most points close to its edges (the "closeness" criterion of Zhang et al.,
+    "Efficient L-shape fitting for vehicle detection using laser scanners", IV 2017).
+
+    The minimum-area rectangle of an L (two faces of a box) is often aligned with the L's hypotenuse;
+    closeness puts both legs on edges. Each point counts 1 / max(distance to its nearer edge, `floor`)
+    (floor: metres, about the points' quantisation), with the nearer of the two parallel edges chosen
+    per axis for the whole set. Returns (centre 2, axis 2, extent 2) as min_area_rectangle.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2 or len(pts) == 0:
+        raise ShapeError(f"l_shape_rectangle: expected N×2 points with N ≥ 1, got {pts.shape}")
+    if len(np.unique(pts, axis=0)) < 3:
+        return min_area_rectangle(pts)
+    theta = np.deg2rad(np.arange(0.0, 90.0, step_deg))                 # A angles: a rectangle repeats every 90°
+    axes = np.stack([np.cos(theta), np.sin(theta)], axis=1)            # A×2
+    perps = np.stack([-axes[:, 1], axes[:, 0]], axis=1)                # A×2
+    hugged = []
+    for proj in (pts @ axes.T, pts @ perps.T):                          # N×A each
+        to_max = proj.max(0) - proj                                     # N×A distance to the far edge
+        to_min = proj - proj.min(0)
+        # The edge the points hug: the one with the smaller total distance, for the whole set.
+        use_max = np.linalg.norm(to_max, axis=0) < np.linalg.norm(to_min, axis=0)
+        hugged.append(np.where(use_max[None], to_max, to_min))          # N×A
+    dist = np.minimum(hugged[0], hugged[1])                             # N×A: to the nearer hugged edge
+    best = int(np.argmax((1.0 / np.maximum(dist, floor)).sum(0)))
+    a, p = axes[best], perps[best]
+    ca, cp = pts @ a, pts @ p
+    centre = 0.5 * (ca.max() + ca.min()) * a + 0.5 * (cp.max() + cp.min()) * p
+    return centre, a, np.array([ca.max() - ca.min(), cp.max() - cp.min()])
+
+
+def fit_box_to_points(xyz: np.ndarray, *, pad: float = 0.0, l_shape_floor: float | None = None) -> np.ndarray:
     """Canonical box (7,) around N×3 points of one frame; every side grows by `pad` metres.
 
     `pad` accounts for the support of each sample: points at voxel centres need pad = voxel size
-    to cover their voxels.
+    to cover their voxels. l_shape_floor: None — the minimum-area rectangle; a distance in metres —
+    the L-shape (closeness) rectangle, for points on the visible faces of an object (l_shape_rectangle).
     """
     xyz = np.asarray(xyz, dtype=np.float64)
     if xyz.ndim != 2 or xyz.shape[1] != 3 or len(xyz) == 0:
         raise ShapeError(f"fit_box_to_points: expected N×3 with N ≥ 1, got {'×'.join(map(str, xyz.shape))}")
-    centre_xz, axis, extent = min_area_rectangle(xyz[:, [0, 2]])
+    if l_shape_floor is None:
+        centre_xz, axis, extent = min_area_rectangle(xyz[:, [0, 2]])
+    else:
+        centre_xz, axis, extent = l_shape_rectangle(xyz[:, [0, 2]], floor=l_shape_floor)
     if extent[1] > extent[0]:
         # Make the longer side the object's x axis (length); the new x axis is the old perpendicular.
         axis = np.array([-axis[1], axis[0]])

@@ -12,15 +12,18 @@ import torch
 
 from core.errors import ShapeError
 from core.geometry.grid import GridConfig
-from core.moving.boxfit import fit_box_to_voxels
+from core.moving.amodal import SizePrior, amodal_box, split_oversized
+from core.moving.boxfit import fit_box_to_voxels, voxel_indices_to_ref
 from core.moving.components import component_indices, connected_components, to_numpy
+from core.moving.ground import ground_y_at
 from core.moving.nms import nms_bev
 from core.moving.saliency import center_surround_score
 
 
 def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: float, min_voxels: int,
                              dt: float, occupied_above: float = 0.5, shell_margin: float | None = None,
-                             nms_iou: float = 0.3, connectivity: int = 26, can_move=None) -> list[dict]:
+                             nms_iou: float = 0.3, connectivity: int = 26, can_move=None,
+                             size_prior: SizePrior | None = None, viewpoints=None, ground=None) -> list[dict]:
     """Scored oriented boxes of the independently moving objects.
 
     flow: 3×Z×Y×X voxels (x, y, z), stabilised (background ≈ 0). occupancy: Z×Y×X in [0, 1] or None
@@ -28,7 +31,11 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
     min_voxels: smaller components are dropped. dt: seconds from t to t+1. occupied_above: occupancy
     threshold. shell_margin: metres of the saliency shell (default 2 voxels). nms_iou: BEV IoU above
     which a lower-scored box is suppressed. can_move: Z×Y×X bool or None — voxels outside it never count
-    as moving (core.moving.ground.above_ground: nothing at or below the ground moves).
+    as moving (core.moving.ground.above_ground: nothing at or below the ground moves). size_prior: None —
+    each component's box covers its voxels (the visible part); a SizePrior — amodal boxes
+    (core.moving.amodal): oversized components are split or dropped, and each box grows to a whole object
+    away from the nearest of `viewpoints` (V×3 camera centres in ref, metres; None: symmetrically) and
+    down to the `ground` plane (4,) (core.moving.ground; None: the visible vertical extent).
 
     Returns a list, best score first, of dicts: `box_ref` (7,) canonical box in ref, `score` (float,
     center-surround in [−1, 1]), `velocity_ref` (3,) mean velocity of the component's voxels in
@@ -57,18 +64,43 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
     labels, count = connected_components(moving, connectivity=connectivity)
     margin = 2 * grid.voxel_size if shell_margin is None else shell_margin
     found = []
-    for zyx in component_indices(labels, count):
-        if len(zyx) < min_voxels:
+    views = None if viewpoints is None else to_numpy(viewpoints).astype(np.float64).reshape(-1, 3)
+    for component in component_indices(labels, count):
+        if len(component) < min_voxels:
             continue
-        box = fit_box_to_voxels(zyx, grid)
-        score = center_surround_score(moving, box, grid, weight=occupied, shell_margin=margin)
-        mean_flow = f[:, zyx[:, 0], zyx[:, 1], zyx[:, 2]].mean(axis=1)  # 3 voxels, (x, y, z)
-        found.append(dict(box_ref=box, score=score, velocity_ref=mean_flow * grid.voxel_size / dt,
-                          num_voxels=int(len(zyx))))
+        pieces = [component] if size_prior is None else _pieces(component, grid, size_prior)
+        for zyx in pieces:
+            if len(zyx) < min_voxels:
+                continue
+            visible = fit_box_to_voxels(zyx, grid)
+            # Saliency scores the voxels seen to move (the visible box), not the hidden part of the object.
+            score = center_surround_score(moving, visible, grid, weight=occupied, shell_margin=margin)
+            # pad = one voxel: moving voxels are those whose centres lie inside the object (core.moving.amodal)
+            box = visible if size_prior is None else amodal_box(
+                voxel_indices_to_ref(zyx, grid), viewpoint=_nearest(views, zyx, grid), prior=size_prior,
+                voxel=grid.voxel_size, pad=grid.voxel_size,
+                ground_y=None if ground is None else ground_y_at(ground, visible[0], visible[2]))
+            mean_flow = f[:, zyx[:, 0], zyx[:, 1], zyx[:, 2]].mean(axis=1)  # 3 voxels, (x, y, z)
+            found.append(dict(box_ref=box, score=score, velocity_ref=mean_flow * grid.voxel_size / dt,
+                              num_voxels=int(len(zyx))))
     if not found:
         return []
     keep = nms_bev(np.stack([d["box_ref"] for d in found]), np.array([d["score"] for d in found]), nms_iou)
     return [found[i] for i in keep]
+
+
+def _pieces(zyx: np.ndarray, grid: GridConfig, prior: SizePrior) -> list[np.ndarray]:
+    """The component's voxels N×3 (z, y, x) split into object-sized pieces (core.moving.amodal)."""
+    pieces, _ = split_oversized(voxel_indices_to_ref(zyx, grid), prior, voxel=grid.voxel_size, pad=grid.voxel_size)
+    return [zyx[index] for index in pieces]
+
+
+def _nearest(views: np.ndarray | None, zyx: np.ndarray, grid: GridConfig) -> np.ndarray | None:
+    """The camera centre (3,) nearest to the voxels' centroid, or None without cameras."""
+    if views is None or len(views) == 0:
+        return None
+    centroid = voxel_indices_to_ref(zyx, grid).mean(0)
+    return views[int(np.argmin(((views - centroid) ** 2).sum(1)))]
 
 
 def detections_to_tensors(per_example: list[list[dict]], *, device=None,

@@ -78,6 +78,12 @@ def fit_ground_plane(points: np.ndarray, *, max_tilt_deg: float = 45.0, inlier_d
     return np.array([*normal, d])
 
 
+def ground_y_at(plane: np.ndarray, x: float, z: float) -> float:
+    """The y (metres, down) of the plane at horizontal position (x, z) in ref."""
+    a, b, c, d = (float(v) for v in plane)
+    return -(a * x + c * z + d) / b
+
+
 def voxel_heights(grid: GridConfig, plane: np.ndarray) -> np.ndarray:
     """Height above `plane` (metres) of every voxel centre of `grid`: Z×Y×X."""
     def centres(lo: float, hi: float, n: int) -> np.ndarray:

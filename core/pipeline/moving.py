@@ -26,6 +26,7 @@ from core.geometry import se3
 from core.geometry.camera import depth_to_points
 from core.geometry.grid import GridConfig
 from core.geometry.voxelize import voxelize
+from core.moving.amodal import SizePrior
 from core.moving.detect_moving import detections_to_tensors, moving_objects_from_flow
 from core.moving.ground import DEFAULT_MARGIN_VOXELS, above_ground, fit_ground_plane
 from core.pipeline.egomotion import rig_cam_T_ref
@@ -56,6 +57,10 @@ class MovingObjectsConfig:
     # Voxels whose centre lies less than this many voxels above the ground plane fitted to frame 0's
     # depth points never move (core.moving.ground); None: no ground plane.
     ground_margin: float | None = DEFAULT_MARGIN_VOXELS
+    # None: each box covers the voxels seen to move (the visible part of an object). A SizePrior: amodal
+    # boxes of whole objects — oversized components split or dropped, boxes grown to the prior away from
+    # the camera (core.moving.amodal).
+    size_prior: SizePrior | None = None
 
     def __post_init__(self) -> None:
         if self.dt <= 0 or self.min_speed < 0 or self.min_voxels < 1:
@@ -72,10 +77,12 @@ class MovingObjectsConfig:
 @dataclass
 class FrameEvidence:
     """What frame 0's depth alone says about the scene, in ref0: `observed` B×1×Z×Y×X in {0, 1} (voxels
-    holding a depth point of any view) and `ground` (one plane (4,) or None per item; core.moving.ground)."""
+    holding a depth point of any view), `ground` (one plane (4,) or None per item; core.moving.ground) and
+    `viewpoints` B×V×3 (the cameras' centres in ref0, metres: amodal boxes grow away from them)."""
 
     observed: torch.Tensor
     ground: list
+    viewpoints: torch.Tensor | None = None
 
 
 def frame_evidence(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor, grid: GridConfig, *,
@@ -88,14 +95,17 @@ def frame_evidence(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torc
     observed = voxelize(xyz_ref, grid, valid)  # B×1×Z×Y×X
     planes = [fit_ground_plane(xyz_ref[b][valid[b]].double().cpu().numpy()) if fit_ground else None
               for b in range(B)]
-    return FrameEvidence(observed=observed, ground=planes)
+    viewpoints = se3.invert(cam_T_ref.reshape(B * V, 4, 4))[:, :3, 3].reshape(B, V, 3)  # B×V×3 ref_T_cam's t
+    return FrameEvidence(observed=observed, ground=planes, viewpoints=viewpoints)
 
 
 def boxes_from_flow(flow: torch.Tensor, occupancy: torch.Tensor | None, grid: GridConfig,
-                    config: MovingObjectsConfig | None = None, *, ground: list | None = None) -> dict[str, torch.Tensor]:
+                    config: MovingObjectsConfig | None = None, *, ground: list | None = None,
+                    viewpoints: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """The post-processing alone, per batch item: flow B×3×Z×Y×X (voxels, stabilised), occupancy
     B×1×Z×Y×X probabilities or None (every voxel counts as occupied), ground: one plane or None per
-    item (voxels within `config.ground_margin` voxels of it or below do not move), or None.
+    item (voxels within `config.ground_margin` voxels of it or below do not move), or None; viewpoints:
+    B×V×3 camera centres in ref0 (amodal boxes grow away from the nearest), or None.
 
     Returns {"boxes": B×K×7 (ref0), "scores": B×K, "valid": B×K bool, "velocities": B×K×3 m/s} on
     flow's device, each item's rows best first (K ≥ 1; padding rows are zero and not valid).
@@ -107,7 +117,9 @@ def boxes_from_flow(flow: torch.Tensor, occupancy: torch.Tensor | None, grid: Gr
                                  threshold=cfg.threshold_voxels(grid), min_voxels=cfg.min_voxels, dt=cfg.dt,
                                  occupied_above=cfg.occupied_above, shell_margin=cfg.shell_margin,
                                  nms_iou=cfg.nms_iou, connectivity=cfg.connectivity,
-                                 can_move=above_ground(grid, planes[b], margin_voxels=cfg.ground_margin or 0.0))
+                                 can_move=above_ground(grid, planes[b], margin_voxels=cfg.ground_margin or 0.0),
+                                 size_prior=cfg.size_prior, viewpoints=None if viewpoints is None else viewpoints[b],
+                                 ground=planes[b])
         for b in range(flow.shape[0])]
     return detections_to_tensors(per_example, device=flow.device)
 
@@ -140,7 +152,7 @@ def moving_objects(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_ca
     evidence = frame_evidence(depth0, pix_T_cam0, rig_cam_T_ref(world_T_cam0, world_T_ref0), grid,
                               fit_ground=cfg.ground_margin is not None)
     found = boxes_from_flow(out["flow"], box_occupancy(cfg, out.get("occupancy"), evidence), grid, cfg,
-                            ground=evidence.ground)
+                            ground=evidence.ground, viewpoints=evidence.viewpoints)
     return {**found, "flow": out["flow"], "ref0_T_ref1": out["ref0_T_ref1"]}
 
 

@@ -152,7 +152,7 @@ def moving_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0:
     flow = raw if enc0.occupancy is None else raw * (enc0.occupancy >= cfg.occupied_above).to(raw.dtype)
     watch.lap("flow")
     found = boxes_from_flow(flow, box_occupancy(cfg, enc0.occupancy, enc0.evidence), grid, cfg,
-                            ground=enc0.evidence.ground)
+                            ground=enc0.evidence.ground, viewpoints=enc0.evidence.viewpoints)
     watch.lap("boxes")
     out.update(found, flow=flow, ref0_T_ref1=ref0_T_ref1)
     return out

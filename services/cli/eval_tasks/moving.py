@@ -12,6 +12,11 @@ points, boxes in ref_t):
   2D flow, thresholded, clustered, lifted with depth; per view, merged across the rig by BEV NMS).
 AP is all-point interpolated at 3D IoU 0.5 (the paper's) and 0.25 / 0.33: at the tiny and small
 presets voxels are 1 m and 0.5 m, so a box fitted to voxels is coarse and IoU 0.5 is a hard bar.
+
+Boxes are amodal by default (`--size-prior auto`, core.moving.amodal): for each 3D method a size prior
+is estimated from that method's own components over the evaluated pairs — no labels — and every
+component is split or dropped when oversized and grown to a whole object away from the camera.
+`--size-prior none` keeps the visible boxes; `--size-prior L W H` gives the prior in metres.
 """
 
 from __future__ import annotations
@@ -21,6 +26,9 @@ import torch
 
 from core.data.ground_truth import gt_flow, gt_occupancy, points_in_ref
 from core.eval.moving_protocol import camera_setting, gt_moving_boxes, moving_objects_2p5d_rig
+from dataclasses import replace
+
+from core.moving.amodal import SizePrior, estimate_size_prior
 from core.moving.ground import DEFAULT_MARGIN_VOXELS, fit_ground_plane
 from core.pipeline.moving import DEFAULT_DT, OCCUPANCY_SOURCES, MovingObjectsConfig, boxes_from_flow, moving_objects
 from services.cli.argtypes import non_negative_float, positive_float, positive_int
@@ -60,6 +68,10 @@ def register(kinds) -> None:
     parser.add_argument("--min-points", type=positive_int, default=10,
                         help="depth points an object needs to count as ground truth")
     parser.add_argument("--no-baselines", action="store_true", help="skip the 2.5D baselines (faster)")
+    parser.add_argument("--size-prior", nargs="+", default=["auto"], metavar="auto|none|L W H",
+                        help="amodal boxes: 'auto' (default) estimates each method's object size from its own "
+                             "components over these pairs (no labels), 'none' keeps the visible boxes, three "
+                             "numbers give length, width and height in metres")
     parser.set_defaults(func=run)
 
 
@@ -67,10 +79,62 @@ def _np(boxes: torch.Tensor, scores: torch.Tensor, valid: torch.Tensor):
     return boxes[valid].double().cpu().numpy(), scores[valid].double().cpu().numpy()
 
 
+def parse_size_prior(words: list[str]) -> SizePrior | str | None:
+    """--size-prior words -> "auto", None ("none") or a SizePrior (three positive numbers)."""
+    from services.cli.main import CliError
+
+    if words == ["auto"]:
+        return "auto"
+    if words == ["none"]:
+        return None
+    try:
+        length, width, height = (float(w) for w in words)
+        return SizePrior.from_size(length, width, height)
+    except ValueError:
+        raise CliError(f"--size-prior: expected 'auto', 'none' or three positive sizes L W H in metres, got "
+                       f"{' '.join(words)!r}") from None
+
+
+def _oracle(record, t, grid, config: MovingObjectsConfig) -> dict:
+    """The true stabilised flow and occupancy through the post-processing of `config` (1-item batch)."""
+    true_flow = gt_flow(record, t, grid)[None]                                  # 1×3×Z×Y×X
+    xyz, valid = points_in_ref(record, t)                                       # the same ground plane rule
+    ground = [fit_ground_plane(xyz[valid].double().numpy()) if config.ground_margin is not None else None]
+    ref_T_cam = torch.linalg.inv(torch.as_tensor(record["world_T_ref"][t], dtype=torch.float64)) @ \
+        torch.as_tensor(record["world_T_cam"][t], dtype=torch.float64)        # V×4×4
+    out = boxes_from_flow(true_flow, gt_occupancy(record, t, grid)[None], grid, config, ground=ground,
+                          viewpoints=ref_T_cam[None, :, :3, 3].float())
+    return {**out, "flow": true_flow}
+
+
+def method_configs(bundle, records, *, device, config: MovingObjectsConfig, size_prior) -> dict:
+    """{MODEL: config, ORACLE_3D: config} with each method's size prior: `size_prior` a SizePrior or None
+    for both, or "auto": estimated from that method's own visible components over `records` (no labels)."""
+    if size_prior != "auto":
+        return {MODEL: replace(config, size_prior=size_prior), ORACLE_3D: replace(config, size_prior=size_prior)}
+    visible = replace(config, size_prior=None)
+    extents = {MODEL: [], ORACLE_3D: []}
+    for record in records:
+        batch = record_batch(record, device)
+        for t in range(batch["rgb"].shape[1] - 1):
+            for name, out in ((MODEL, moving_objects(bundle, **pair_inputs(batch, t, t + 1), config=visible)),
+                              (ORACLE_3D, _oracle(record, t, bundle.preset.grid, visible))):
+                boxes = out["boxes"][0][out["valid"][0]].double().cpu().numpy()
+                extents[name] += list(boxes[:, 3:6])
+    configs = {}
+    for name, found in extents.items():
+        # No component at all: nothing to estimate from, so the boxes stay visible boxes.
+        configs[name] = replace(config, size_prior=estimate_size_prior(np.array(found)) if found else None)
+    return configs
+
+
 def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_px: float, min_pixels: int,
-             min_points: int, baselines: bool = True) -> dict:
-    """AP accumulators per camera setting × method, pair counts and the richest example for a plot."""
+             min_points: int, baselines: bool = True, size_prior="auto") -> dict:
+    """AP accumulators per camera setting × method, pair counts, the size prior each 3D method used and
+    the richest example for a plot. size_prior: "auto", None or a SizePrior (method_configs)."""
     grid = bundle.preset.grid
+    records = list(records)
+    configs = method_configs(bundle, records, device=device, config=config, size_prior=size_prior)
     methods = METHODS if baselines else (MODEL, ORACLE_3D)
     acc = {cam: {m: MethodAP(IOUS) for m in methods} for cam in CAMERAS}
     pairs = {cam: 0 for cam in CAMERAS}
@@ -82,12 +146,10 @@ def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_
             cam = camera_setting(record, t)
             gt = gt_moving_boxes(record, t, grid, min_points=min_points)
             found: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-            out = moving_objects(bundle, **pair_inputs(batch, t, t + 1), config=config)
+            out = moving_objects(bundle, **pair_inputs(batch, t, t + 1), config=configs[MODEL])
             found[MODEL] = _np(out["boxes"][0], out["scores"][0], out["valid"][0])
-            true_flow = gt_flow(record, t, grid)[None]                          # 1×3×Z×Y×X
-            xyz, valid = points_in_ref(record, t)                               # the same ground plane rule
-            ground = [fit_ground_plane(xyz[valid].double().numpy()) if config.ground_margin is not None else None]
-            oracle = boxes_from_flow(true_flow, gt_occupancy(record, t, grid)[None], grid, config, ground=ground)
+            oracle = _oracle(record, t, grid, configs[ORACLE_3D])
+            true_flow = oracle["flow"]
             found[ORACLE_3D] = _np(oracle["boxes"][0], oracle["scores"][0], oracle["valid"][0])
             if baselines:
                 for name, (source, stabilise) in BASELINES.items():
@@ -105,14 +167,16 @@ def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_
     if sum(pairs.values()) == 0:
         from services.cli.main import CliError
         raise CliError("moving-object evaluation needs records with at least 2 time steps")
-    return {"acc": acc, "pairs": pairs, "example": example, "stabilised_with": stabilised_with, "methods": methods}
+    priors = {m: None if c.size_prior is None else c.size_prior.to_dict() for m, c in configs.items()}
+    return {"acc": acc, "pairs": pairs, "example": example, "stabilised_with": stabilised_with, "methods": methods,
+            "size_priors": priors}
 
 
 def build_report(bundle, records, *, device, config: MovingObjectsConfig, threshold_px: float = 1.0,
                  min_pixels: int = 15, min_points: int = 10, baselines: bool = True, bundle_path=None,
-                 data_path=None, max_records=None) -> Report:
+                 data_path=None, max_records=None, size_prior="auto") -> Report:
     result = evaluate(bundle, records, device=device, config=config, threshold_px=threshold_px,
-                      min_pixels=min_pixels, min_points=min_points, baselines=baselines)
+                      min_pixels=min_pixels, min_points=min_points, baselines=baselines, size_prior=size_prior)
     keys = [threshold_key(t) for t in IOUS]
     report = Report(kind="moving", title="Moving-object detection evaluation", bundle=bundle_path, data=data_path,
                     settings={"max_records": max_records, "pairs_static_camera": result["pairs"]["static"],
@@ -121,9 +185,11 @@ def build_report(bundle, records, *, device, config: MovingObjectsConfig, thresh
                               "min_speed_m_s": config.min_speed, "min_voxels": config.min_voxels,
                               "box_occupancy": config.occupancy, "ground_margin_voxels": config.ground_margin,
                               "flow_threshold_px": threshold_px, "min_pixels": min_pixels,
-                              "gt_min_points": min_points})
+                              "gt_min_points": min_points,
+                              "size_prior": "auto (per method, from its own components)" if size_prior == "auto"
+                              else (None if size_prior is None else size_prior.to_dict())})
     metrics = {cam: {m: a.summary() for m, a in per.items()} for cam, per in result["acc"].items()}
-    report.metrics = {"moving": metrics, "moving_pairs": result["pairs"]}
+    report.metrics = {"moving": metrics, "moving_pairs": result["pairs"], "size_priors": result["size_priors"]}
     report.text("Each consecutive pair of a record is one frame. Ground truth: objects flagged moving, valid at "
                 "both steps, centred in the grid and hit by at least `gt_min_points` depth points; boxes in "
                 "ref_t. All-point interpolated AP over 3D IoU (exact, yaw-rotated). The paper reports IoU 0.5; "
@@ -131,6 +197,11 @@ def build_report(bundle, records, *, device, config: MovingObjectsConfig, thresh
                 "boxes coarse. `oracle 3d flow` runs the true flow and occupancy through the 3D "
                 "post-processing (an upper bound of it); the 2.5D rows are the paper's baseline with "
                 "Farneback or the true 2D flow, unstabilised and stabilised with the true camera motion.")
+    for method, prior in result["size_priors"].items():
+        report.text(f"Boxes of `{method}`: " + ("visible boxes (no size prior)." if prior is None else
+                    f"amodal, size prior length {prior['length']:.2f} m, width {prior['width']:.2f} m, height "
+                    f"{prior['height']:.2f} m (components above {prior['max_length']:.2f} × {prior['max_width']:.2f} "
+                    f"× {prior['max_height']:.2f} m are split or dropped)."))
     for cam in CAMERAS:
         report.heading(f"{cam.capitalize()} camera ({result['pairs'][cam]} pairs)")
         if result["pairs"][cam] == 0:
@@ -168,7 +239,8 @@ def run(args) -> int:
     report = build_report(bundle, iter_records(args.data, args.max_records), device=device, config=config,
                           threshold_px=args.flow_threshold_px, min_pixels=args.min_pixels,
                           min_points=args.min_points, baselines=not args.no_baselines, bundle_path=args.bundle,
-                          data_path=args.data, max_records=args.max_records)
+                          data_path=args.data, max_records=args.max_records,
+                          size_prior=parse_size_prior(args.size_prior))
     out = report.write(args.out)
     key = threshold_key(PRIMARY_IOU)
     for cam in CAMERAS:
