@@ -4,7 +4,7 @@
 
 - workers=0: the loop runs right here (no Ray), checkpoints under RUN_DIR/checkpoints/.
 - workers>=1: an embedded local Ray (one logical CPU more than the workers: Ray Data's read tasks
-  need one, see ECOSYSTEM.md) — or, with `config.attach`, the Ray cluster this process runs in (a
+  need one, see docs/ecosystem.md#ray) — or, with `config.attach`, the Ray cluster this process runs in (a
   Ray Jobs entrypoint) — runs `TorchTrainer` with a Ray Data stream of the shards split over the
   workers, DDP, `FailureConfig(max_failures)`, and checkpoints under RUN_DIR/ray_train/. The same
   RunConfig(name, storage_path) on a rerun makes Ray hand the latest checkpoint back: that is resume.
