@@ -205,8 +205,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
 
     @app.post("/v1/detect", dependencies=guarded, response_model=schemas.DetectionsResponseJSON, tags=["inference"],
               summary="Frames of one instant -> scored 3D boxes in ref",
-              openapi_extra=_request_body_schema(schemas.DetectRequestJSON, "arrays rgb, depth, pix_T_cam[, world_T_cam]",
-                                                 examples.DETECT),
+              openapi_extra=_request_body_schema(schemas.DetectRequestJSON,
+                                                 "arrays rgb, depth, pix_T_cam[, world_T_cam]", examples.DETECT),
               responses=_ERRORS)
     async def detect_route(request: Request,
                            min_score: Annotated[float, Query(ge=0, le=1, description="binary bodies")] = 0.0):
@@ -218,8 +218,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
 
     @app.post("/v1/moving-objects", dependencies=guarded, response_model=schemas.DetectionsResponseJSON, tags=["inference"],
               summary="Frame pair -> moving objects (oriented boxes with velocities) in ref",
-              openapi_extra=_request_body_schema(schemas.MovingObjectsRequestJSON, "arrays rgb0, depth0, ..., rgb1, ...",
-                                                 examples.MOVING_OBJECTS),
+              openapi_extra=_request_body_schema(schemas.MovingObjectsRequestJSON,
+                                                 "arrays rgb0, depth0, ..., rgb1, ...", examples.MOVING_OBJECTS),
               responses=_ERRORS)
     async def moving_route(request: Request,
                            min_score: Annotated[float, Query(ge=-1, le=1, description="binary bodies")] = -1.0):
