@@ -9,10 +9,10 @@ subtracts the flow the camera motion alone would induce on the static scene (giv
 relative pose). Only the visible surface is ever seen, so boxes tend to be too small — the
 weakness the paper points out.
 
-Conventions (DESIGN.md §2): images H×W(×3), pixel centres at integer (u, v); 2D flow H×W×2 in
-pixels (du, dv) from t to t+1; depth H×W metres along Z, 0 = missing; `pix_T_cam` 4×4;
-`cam1_T_cam0` maps points of camera t into camera t+1; boxes canonical (x, y, z, lx, ly, lz, yaw).
-Inputs are one example (no batch dimension), numpy or torch; outputs are numpy.
+Conventions (docs/conventions.md#cameras-and-pixels): images H×W(×3), pixel centres at integer (u, v); 2D flow
+H×W×2 in pixels (du, dv) from t to t+1; depth H×W metres along Z, 0 = missing; `pix_T_cam` 4×4; `cam1_T_cam0`
+maps points of camera t into camera t+1; boxes canonical (x, y, z, lx, ly, lz, yaw). Inputs are one example
+(no batch dimension), numpy or torch; outputs are numpy.
 """
 
 from __future__ import annotations

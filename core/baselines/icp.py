@@ -1,6 +1,6 @@
 """Point-to-plane ICP: the geometric egomotion baseline on two point clouds (numpy + scipy KD-tree).
 
-Conventions (DESIGN.md §2): point sets are N×3 (x, y, z) in metres; the result is `target_T_source`
+Conventions (docs/conventions.md#poses): point sets are N×3 (x, y, z) in metres; the result is `target_T_source`
 (p_target = target_T_source @ p_source), 4×4 float64. For egomotion between frames 0 and 1 with clouds in
 `ref0` and `ref1`, pass source = cloud of frame 1, target = cloud of frame 0 to get `ref0_T_ref1`.
 

@@ -1,4 +1,4 @@
-"""Stack records (DESIGN.md §3) into one batch of tensors for the task steps.
+"""Stack records (docs/data.md#records) into one batch of tensors for the task steps.
 
 Output keys and shapes (B records):
     rgb          float32 B×T×V×3×H×W in [0, 1]   (from uint8 T×V×H×W×3)

@@ -1,11 +1,11 @@
 """Ground truth derived from a record: egomotion, occupancy, free space, 3D flow, moving-object mask.
 
-Conventions (DESIGN.md §2): frames `pix`, `cam` (OpenCV), `ref` (the record's `world_T_ref[t]`,
+Conventions (docs/conventions.md#frames): frames `pix`, `cam` (OpenCV), `ref` (the record's `world_T_ref[t]`,
 gravity-aligned, anchored to the ego), `mem` (voxel indices, integer = voxel centre), `world`.
 Poses are 4×4 `a_T_b` (p_a = a_T_b @ p_b). Volumes are C×Z×Y×X (one record, no batch dim); flow channels
 are (x, y, z) in voxel units, pointing from step t to t+1. Boxes are the record's canonical world boxes.
 
-A record is the DESIGN.md §3 dict of numpy arrays; every function here reads it without changing it and
+A record is the dict of numpy arrays of docs/data.md#records; every function here reads it without changing it and
 returns float32 torch tensors on the CPU. Poses are composed in float64 so large world offsets cost no
 precision.
 """

@@ -1,4 +1,4 @@
-"""The record: one training/evaluation example as a dict of numpy arrays (DESIGN.md §3).
+"""The record: one training/evaluation example as a dict of numpy arrays (docs/data.md#records).
 
 | key           | dtype   | shape       | meaning                                               |
 |---------------|---------|-------------|-------------------------------------------------------|
@@ -12,7 +12,7 @@
 | `box_id`      | int32   | K           | track id per row (stable over T)                      |
 | `box_moving`  | bool    | K           | the object moves independently in this record        |
 
-Frames and units follow DESIGN.md §2 (OpenCV cameras, metres, radians, `a_T_b` poses).
+Frames and units follow docs/conventions.md (OpenCV cameras, metres, radians, `a_T_b` poses).
 A record holds exactly these keys; `validate_record` enforces keys, dtypes, ranks, the agreement of
 T, V, H, W, K across keys, and finite values, and raises `DataError` with one line naming the place
 (e.g. "shard-00003.tar record ep000042") and the offending key.

@@ -1,4 +1,4 @@
-"""Datasets on disk: `manifest.json` + tar shards in WebDataset layout (DESIGN.md §3).
+"""Datasets on disk: `manifest.json` + tar shards in WebDataset layout (docs/data.md#shards-and-manifest).
 
 A dataset directory holds
 

@@ -1,6 +1,6 @@
 """Egomotion error per frame pair, as TUM's relative pose error (RPE) and the paper's Table (R rad, t m).
 
-Conventions (DESIGN.md §2): poses are 4×4 `a_T_b` with p_a = a_T_b @ p_b. Both the estimate and the
+Conventions (docs/conventions.md#poses): poses are 4×4 `a_T_b` with p_a = a_T_b @ p_b. Both the estimate and the
 ground truth must be the SAME relative pose (e.g. both `ref0_T_ref1`, or both `cam0_T_cam1`). The error
 transform is `err = inv(gt) · est` (TUM RPE with a step of one pair); its rotation angle (radians, in
 [0, π]) is the rotation error and the norm of its translation (metres) the translation error.

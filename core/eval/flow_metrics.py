@@ -1,6 +1,6 @@
 """3D flow errors in voxel units: the paper's L1 EPE split full/static/moving, plus scene-flow scores.
 
-Conventions (DESIGN.md §2): flow volumes are B×3×Z×Y×X, channels (x, y, z), in voxels, from t to t+1.
+Conventions (docs/conventions.md#3d-flow): flow volumes are B×3×Z×Y×X, channels (x, y, z), in voxels, from t to t+1.
 
 Definitions (all in voxels; documented once here and echoed in reports):
 - L1 EPE (the paper's table): per voxel Σ_c |pred_c − gt_c| (L1 norm of the endpoint difference),

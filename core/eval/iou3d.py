@@ -1,6 +1,6 @@
 """Exact IoU of yaw-rotated 3D boxes and of their bird's-eye-view footprints, on CPU.
 
-Conventions (DESIGN.md §2): boxes are rows `(x, y, z, lx, ly, lz, yaw)` — centre in a named
+Conventions (docs/conventions.md#boxes): boxes are rows `(x, y, z, lx, ly, lz, yaw)` — centre in a named
 camera-like frame (X right, Y down, Z forward), lengths along the object's own axes (lx = length,
 ly = height, lz = width), `yaw` about the frame's Y axis with R = [[c,0,s],[0,1,0],[-s,0,c]].
 Both box sets passed to one function must be in the same frame.

@@ -6,7 +6,7 @@ BOTTOM centre of the box in rectified camera coordinates (X right, Y down, Z for
 score column; ground truth does not. `DontCare` rows are read like any other type (the evaluator
 picks classes by name, so they are ignored unless asked for).
 
-In memory boxes use the canonical encoding of DESIGN.md §2 in the `cam` frame: rows
+In memory boxes use the canonical encoding of docs/conventions.md#boxes in the `cam` frame: rows
 (x, y, z, lx, ly, lz, yaw) with the box CENTRE, lx = l, ly = h, lz = w, yaw = ry; the centre sits
 h/2 above the bottom, i.e. y_centre = y_bottom − h/2 because Y points down. The conversion is
 core.geometry.boxes.kitti_to_boxes / boxes_to_kitti.

@@ -1,9 +1,9 @@
 """The moving-object evaluation protocol on records (paper §5, "moving objects"): ground truth, camera
 setting, and the 2.5D baselines run over every view of a rig.
 
-Frames (DESIGN.md §2): `ref_t` is the record's `world_T_ref[t]`; boxes are canonical rows
+Frames (docs/conventions.md#frames): `ref_t` is the record's `world_T_ref[t]`; boxes are canonical rows
 (x, y, z, lx, ly, lz, yaw) in ref_t; 2D flow is H×W×2 pixels (du, dv) from t to t+1. A record is the
-DESIGN.md §3 dict of numpy arrays.
+dict of numpy arrays of docs/data.md#records.
 
 Ground truth of a pair (t, t+1): the objects flagged `box_moving` that are valid at both steps, whose
 centre at t lies in the grid and that at least `min_points` depth points of the rig (all views, step t)

@@ -1,6 +1,6 @@
 """Canonical oriented 3D boxes and their KITTI conversion.
 
-Conventions (DESIGN.md §2):
+Conventions (docs/conventions.md#boxes):
 - Frames: `cam` / `ref` / `world` are camera-like (X right, Y down, Z forward, metres); every function
   returns boxes in the frame its inputs were in, and callers name that frame (`boxes_ref`, `boxes_cam`).
 - A box row is (x, y, z, lx, ly, lz, yaw): the CENTRE (not the bottom), lengths along the object's own

@@ -1,6 +1,6 @@
 """Pinhole cameras: intrinsics as 4×4 `pix_T_cam`, projection, unprojection, depth <-> points.
 
-Conventions (DESIGN.md §2):
+Conventions (docs/conventions.md#cameras-and-pixels):
 - `pix`: u right, v down; integer (u, v) are pixel CENTRES, so pixel (i, j) covers u in [i-0.5, i+0.5].
   An H×W image spans u in [-0.5, W-0.5], v in [-0.5, H-0.5]; its centre is ((W-1)/2, (H-1)/2).
 - `cam`: OpenCV camera, X right, Y down, Z forward, metres. Depth is metres along Z, 0 = missing.

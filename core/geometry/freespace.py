@@ -1,8 +1,8 @@
 """Free space from depth: the voxels a camera ray crosses before it reaches its observed point.
 
-Conventions (DESIGN.md §2): `cam` is OpenCV (X right, Y down, Z forward, metres) and the rays start at
-its origin; point sets B×N×3 in (x, y, z); poses `a_T_b` with p_a = a_T_b @ p_b; volumes B×C×Z×Y×X;
-`mem = (ref − min)/voxel − 0.5`, so integer mem are voxel centres and voxel i spans [i−0.5, i+0.5).
+Conventions (docs/conventions.md#the-map-grid): `cam` is OpenCV (X right, Y down, Z forward, metres) and the
+rays start at its origin; point sets B×N×3 in (x, y, z); poses `a_T_b` with p_a = a_T_b @ p_b; volumes
+B×C×Z×Y×X; `mem = (ref − min)/voxel − 0.5`, so integer mem are voxel centres and voxel i spans [i−0.5, i+0.5).
 
 Method (exact, vectorised; the slow per-ray Amanatides–Woo walk in the tests is the reference):
 in mem coordinates the segment o + t·(e − o), t ∈ [0, 1], from the camera centre o to the point e is

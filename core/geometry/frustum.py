@@ -1,8 +1,8 @@
 """3D -> 2D: resample the map volume into a camera's frustum (pixel rays × log-spaced depth planes).
 
-Conventions (DESIGN.md §2): `pix` integer (u, v) are pixel centres; `cam` OpenCV (X right, Y down,
-Z forward, metres); `pix_T_cam` is 4×4 (fx=[0,0], fy=[1,1], cx=[0,2], cy=[1,2]); poses `a_T_b` with
-p_a = a_T_b @ p_b; volumes B×C×Z×Y×X with integer `mem` at voxel centres; depth is metres along Z.
+Conventions (docs/conventions.md#cameras-and-pixels): `pix` integer (u, v) are pixel centres; `cam` OpenCV (X
+right, Y down, Z forward, metres); `pix_T_cam` is 4×4 (fx=[0,0], fy=[1,1], cx=[0,2], cy=[1,2]); poses `a_T_b`
+with p_a = a_T_b @ p_b; volumes B×C×Z×Y×X with integer `mem` at voxel centres; depth is metres along Z.
 
 For output pixel (u, v) (u = 0..W−1, v = 0..H−1, so `pix_T_cam` must be the intrinsics of the H×W output
 image — see `camera.scale_intrinsics`) and plane d, the sample point is unproject(u, v, d) in cam, mapped

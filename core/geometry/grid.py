@@ -1,6 +1,6 @@
 """The map grid: metric bounds in `ref` plus voxel counts, and the ref <-> mem similarity.
 
-Conventions (DESIGN.md §2): `ref` is a camera-like frame (X right, Y down, Z forward, metres);
+Conventions (docs/conventions.md#the-map-grid): `ref` is a camera-like frame (X right, Y down, Z forward, metres);
 `mem` holds voxel index coordinates (x, y, z) with integer values at voxel centres:
     mem = (ref - min) / voxel - 0.5
 Volumes are laid out B×C×Z×Y×X; point sets are B×N×3 in (x, y, z) order. Voxels are cubic.

@@ -1,6 +1,6 @@
 """Trilinear resampling of voxel volumes: at points, under a rigid motion, along a flow field.
 
-Conventions (DESIGN.md §2):
+Conventions (docs/conventions.md#the-map-grid):
 - Volumes are B×C×Z×Y×X; point sets B×N×3 in (x, y, z) order; flow volumes B×3×Z×Y×X with channels
   (x, y, z) in voxel units.
 - `mem` holds voxel index coordinates: integer values are voxel CENTRES, mem = (ref − min)/voxel − 0.5.

@@ -1,6 +1,6 @@
 """Rigid transforms (SE(3)) and rotation parameterisations, batched torch.
 
-Conventions (DESIGN.md §2):
+Conventions (docs/conventions.md#poses):
 - Frames: `pix` (u right, v down, integer coordinates are pixel centres), `cam` (OpenCV: X right,
   Y down, Z forward, metres), `ref` (the map's frame), `mem` (voxel index coordinates, integer = voxel
   centre), `world`.

@@ -1,9 +1,9 @@
 """2D -> 3D: fill the map grid with image values by sampling the image at projected voxel centres.
 
-Conventions (DESIGN.md §2): images B×C×H×W; `pix` integer (u, v) are pixel centres, so the image covers
-u in [−0.5, W−0.5], v in [−0.5, H−0.5]; `cam` is OpenCV (X right, Y down, Z forward); `pix_T_cam` is 4×4
-(fx=[0,0], fy=[1,1], cx=[0,2], cy=[1,2]); poses `a_T_b` with p_a = a_T_b @ p_b; volumes B×C×Z×Y×X;
-integer `mem` are voxel centres.
+Conventions (docs/conventions.md#cameras-and-pixels): images B×C×H×W; `pix` integer (u, v) are pixel centres,
+so the image covers u in [−0.5, W−0.5], v in [−0.5, H−0.5]; `cam` is OpenCV (X right, Y down, Z forward);
+`pix_T_cam` is 4×4 (fx=[0,0], fy=[1,1], cx=[0,2], cy=[1,2]); poses `a_T_b` with p_a = a_T_b @ p_b; volumes
+B×C×Z×Y×X; integer `mem` are voxel centres.
 
 Sampling: bilinear with `grid_sample(..., align_corners=True)` and u_norm = 2u/(W−1) − 1 (pixel centres
 exact). Voxel centres whose projection falls on the image footprint but beyond the outermost pixel centres

@@ -1,9 +1,9 @@
 """Point clouds to binary occupancy volumes.
 
-Conventions (DESIGN.md §2): points B×N×3 in (x, y, z) order, metres in `ref` (OpenCV-like: X right,
-Y down, Z forward); volumes B×C×Z×Y×X. `mem = (ref − min)/voxel − 0.5`, so integer mem are voxel
-centres and voxel (i, j, k) covers mem x in [i−0.5, i+0.5) (likewise y, z); a point goes to the voxel
-whose centre is nearest (floor(mem + 0.5)). Points outside the grid are dropped.
+Conventions (docs/conventions.md#the-map-grid): points B×N×3 in (x, y, z) order, metres in `ref` (OpenCV-like:
+X right, Y down, Z forward); volumes B×C×Z×Y×X. `mem = (ref − min)/voxel − 0.5`, so integer mem are voxel
+centres and voxel (i, j, k) covers mem x in [i−0.5, i+0.5) (likewise y, z); a point goes to the voxel whose
+centre is nearest (floor(mem + 0.5)). Points outside the grid are dropped.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """3D cross-correlation cost volume: the matching score of every voxel against nearby displaced voxels.
 
-Conventions (DESIGN.md §2): volumes are B×C×Z×Y×X; displacements are (x, y, z) in voxels.
+Conventions (docs/conventions.md#3d-flow): volumes are B×C×Z×Y×X; displacements are (x, y, z) in voxels.
 
 cost[b, d, z, y, x] = Σ_c f0[b, c, z, y, x] · f1[b, c, z + dz, y + dy, x + dx] / C_norm
 for every displacement d = (dx, dy, dz) with |dx| ≤ rx, |dy| ≤ ry, |dz| ≤ rz; f1 is zero outside the

@@ -10,7 +10,7 @@ with objectness confidences; it gives no layer sizes, so ours are:
 
 Anchors: A car-like axis-aligned sizes at every coarse (z, x) cell, at one height (detector_anchors).
 Bird's-eye view because objects stand on the ground: one cell per column keeps the head cheap and
-lets the y delta place the box vertically. Conventions (DESIGN.md §2): boxes in `ref`, canonical rows
+lets the y delta place the box vertically. Conventions (docs/conventions.md#boxes): boxes in `ref`, canonical rows
 (x, y, z, lx, ly, lz, yaw) with yaw = 0 on output (axis-aligned, as the paper's detector).
 """
 

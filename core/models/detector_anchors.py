@@ -1,6 +1,6 @@
 """Anchors of the detector's bird's-eye-view head: a few car-like axis-aligned boxes per coarse cell.
 
-Conventions (DESIGN.md §2): `ref` is X right, Y down, Z forward (metres); the map is B×F×Z×Y×X.
+Conventions (docs/conventions.md#boxes): `ref` is X right, Y down, Z forward (metres); the map is B×F×Z×Y×X.
 The head sees the map pooled by `stride` voxels in every axis and flattened along Y, i.e. one cell
 per (z, x) column of `stride`×`stride` voxels. Each cell carries A anchors, rows (x, y, z, lx, ly, lz)
 (axis-aligned, see detector_boxes), centred on the cell in x and z and at a fixed height `y_centre`

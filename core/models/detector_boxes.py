@@ -1,6 +1,6 @@
 """Axis-aligned 3D boxes for the detector: conversion, IoU, Faster-RCNN delta coding and NMS.
 
-Conventions (DESIGN.md §2): boxes live in `ref` (X right, Y down, Z forward, metres). The detector
+Conventions (docs/conventions.md#boxes): boxes live in `ref` (X right, Y down, Z forward, metres). The detector
 works with axis-aligned boxes ("aabb"), rows (x, y, z, lx, ly, lz): centre and extents along the
 frame's own axes. The paper's detector is axis-aligned, so a yaw-rotated ground-truth box is
 replaced by its axis-aligned bounding box (`boxes_to_aabb`), and detections go back to canonical

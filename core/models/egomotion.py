@@ -1,7 +1,7 @@
 """Egomotion: coarse-to-fine 6-DoF alignment of two unregistered 3D input volumes (paper appendix).
 
-Conventions (DESIGN.md §2): poses are 4×4 `a_T_b` (p_a = a_T_b @ p_b); volumes B×C×Z×Y×X on the map grid.
-The REFERENCE volume lives in `ref0` (the map frame at t0), the QUERY volume in `ref1` (at t1); the
+Conventions (docs/conventions.md#poses): poses are 4×4 `a_T_b` (p_a = a_T_b @ p_b); volumes B×C×Z×Y×X on the
+map grid. The REFERENCE volume lives in `ref0` (the map frame at t0), the QUERY volume in `ref1` (at t1); the
 module estimates `ref0_T_ref1`. Warping the query into ref0 is `warp_rigid(query, ref1_T_ref0, grid)`.
 
 Per scale s (coarse to fine, each an average-pooled copy of the module's OWN features):

@@ -1,6 +1,6 @@
 """Candidate rotations of the egomotion module: a small Cartesian set of Euler offsets around identity.
 
-Conventions (DESIGN.md §2, core.geometry.se3): rotations are about the `ref` frame's own axes through
+Conventions (docs/conventions.md#poses, core.geometry.se3): rotations are about the `ref` frame's own axes through
 its origin (the ego camera centre, which is the grid centre in every preset); R = Rz·Ry·Rx. Y points
 down, so a rotation about Y is yaw — the dominant rotation of ground vehicles; presets give yaw the
 largest step ("yaw-heavy").

@@ -1,6 +1,6 @@
 """3D imagination flow: PWC-style coarse-to-fine 3D flow between two egomotion-stabilised feature maps.
 
-Conventions (DESIGN.md §2): feature volumes B×F×Z×Y×X in the SAME frame (`ref` at t, the second map
+Conventions (docs/conventions.md#3d-flow): feature volumes B×F×Z×Y×X in the SAME frame (`ref` at t, the second map
 already registered into it); flow volumes B×3×Z×Y×X, channels (x, y, z), voxel units, from t to t+1:
     f1(p + flow(p)) ≈ f0(p).
 

@@ -1,6 +1,6 @@
 """Synthetic rigid motions of a single feature volume: the supervised half of 3D flow training.
 
-Conventions (DESIGN.md §2): poses 4×4, `ref` metres, `mem` voxel coordinates (integer = centre);
+Conventions (docs/conventions.md#3d-flow): poses 4×4, `ref` metres, `mem` voxel coordinates (integer = centre);
 flow B×3×Z×Y×X (x, y, z) in voxels from t to t+1.
 
 A motion M (ref_t → ref_t, applied to the scene) moves the point at ref position x to M·x. The moved

@@ -1,6 +1,6 @@
 """2D->3D input of the mapper: one RGB-D view lifted into the map grid of `ref` (paper appendix).
 
-Channels are [occupancy, R−0.5, G−0.5, B−0.5] (DESIGN.md §4):
+Channels are [occupancy, R−0.5, G−0.5, B−0.5] (docs/conventions.md#tensor-layouts):
 - RGB: bilinear sample of the image at each voxel centre's projection (core.geometry.unproject_image),
   centred so voxels outside the view hold 0 (mid grey) rather than black;
 - occupancy: the view's depth points voxelised in `ref` (1 where a point lands).

@@ -1,6 +1,6 @@
 """Oriented box fit: minimum-area rectangle in bird's-eye view × vertical extent.
 
-Conventions (DESIGN.md §2): points are N×3 (x, y, z) in a camera-like frame (X right, Y down,
+Conventions (docs/conventions.md#boxes): points are N×3 (x, y, z) in a camera-like frame (X right, Y down,
 Z forward). The bird's-eye view is the (x, z) plane and "vertical" is Y. Boxes come out in the
 canonical encoding (x, y, z, lx, ly, lz, yaw) of that same frame: the object's x axis is the
 direction (cos yaw, −sin yaw) in (x, z), lx ≥ lz (length is the longer side), yaw in [−π/2, π/2).

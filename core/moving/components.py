@@ -1,4 +1,4 @@
-"""3D connected components of a boolean volume laid out Z×Y×X (DESIGN.md §2)."""
+"""3D connected components of a boolean volume laid out Z×Y×X (docs/conventions.md#tensor-layouts)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Moving objects from egomotion-stabilised 3D flow: threshold, components, score, fit, NMS.
 
-Inputs follow DESIGN.md §2: flow 3×Z×Y×X in voxel units with channels (x, y, z), from frame t to
+Inputs follow docs/conventions.md#3d-flow: flow 3×Z×Y×X in voxel units with channels (x, y, z), from frame t to
 t+1, in the map grid of `ref` at t; occupancy Z×Y×X probabilities on the same grid. Boxes and
 velocities come out in `ref` (metres, m/s).
 """

@@ -9,7 +9,7 @@ moves lies below the ground, so the post-processing drops the voxels whose centr
 `margin` voxels above the fitted plane (the voxel holding the ground surface, unless the surface lies in
 its bottom quarter, and everything under it).
 
-Conventions (DESIGN.md §2): points in `ref`, metres, y down; the plane is (a, b, c, d) with unit
+Conventions (docs/conventions.md#frames): points in `ref`, metres, y down; the plane is (a, b, c, d) with unit
 normal n = (a, b, c) pointing UP (n · (0, −1, 0) > 0) and height(p) = n · p + d (metres above the
 ground). RANSAC: random point triplets, the plane with the most inliers among those tilted at most
 `max_tilt_deg` from ref's horizontal (45° by default: when ref is a camera looking down, as in the

@@ -1,6 +1,6 @@
 """Non-maximum suppression of yaw-rotated boxes by bird's-eye-view IoU (numpy; no torchvision).
 
-Boxes are canonical (x, y, z, lx, ly, lz, yaw) rows, all in one frame (DESIGN.md §2).
+Boxes are canonical (x, y, z, lx, ly, lz, yaw) rows, all in one frame (docs/conventions.md#boxes).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Center-surround motion saliency of a 3D box: the interior moves, the surrounding shell does not.
 
 A 3D version of the 2D center-surround motion saliency score (paper §3, moving objects). Volumes are
-Z×Y×X over the map grid; boxes are canonical (x, y, z, lx, ly, lz, yaw) in `ref` (DESIGN.md §2).
+Z×Y×X over the map grid; boxes are canonical (x, y, z, lx, ly, lz, yaw) in `ref` (docs/conventions.md#boxes).
 
 score = mean(moving | interior) − mean(moving | shell), each mean weighted by `weight` (occupancy:
 only matter can move; air has no flow to speak of), in [−1, 1]; higher is more salient. The shell

@@ -1,7 +1,7 @@
 """3D object detection inference: RGB-D views with known poses -> scored axis-aligned 3D boxes in `ref`.
 
 The map is built exactly as `core.pipeline.map.map_frames` builds it (`ref` is `world_T_ref` when
-given, else the camera of view 0; DESIGN.md §2), then the bundle's `detector` (core.models.detector3d)
+given, else the camera of view 0; docs/conventions.md#frames), then the bundle's `detector` (core.models.detector3d)
 scores its anchors, decodes boxes and suppresses overlaps. Boxes are canonical rows
 (x, y, z, lx, ly, lz, yaw) in `ref` with yaw 0 (the paper's detector is axis-aligned).
 Pass `world_T_cam = ref_T_cam` and `world_T_ref = identity` to give the views' poses in ref directly.

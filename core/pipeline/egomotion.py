@@ -1,6 +1,6 @@
 """Egomotion inference over a loaded bundle: two RGB-D rig frames -> `ref0_T_ref1` and `cam0_T_cam1`.
 
-Frames (DESIGN.md §2): each frame's views are lifted into that frame's own map frame `ref_t` with the
+Frames (docs/conventions.md#frames): each frame's views are lifted into that frame's own map frame `ref_t` with the
 rig calibration only. `ref_t` is given by `world_T_ref0/1` when the caller knows it (records do); else
 it is the camera of view 0 at that time (the inference services' convention), where ref0_T_ref1 is
 cam0_T_cam1. `world_T_cam` is used only within one time step (relative rig geometry), never across.

@@ -1,6 +1,6 @@
 """Map inference: RGB-D views with known poses -> 3D feature map, occupancy and a heightmap in `ref`.
 
-`ref` is `world_T_ref` when given, else the camera of view 0 (DESIGN.md §2). Each view is lifted into
+`ref` is `world_T_ref` when given, else the camera of view 0 (docs/conventions.md#frames). Each view is lifted into
 `ref` with cam_T_ref = inv(world_T_cam)·world_T_ref, encoded, and fused by the masked average of
 the latent map (core.models.latent_map).
 """

@@ -10,7 +10,7 @@ center-surround motion saliency, fit an oriented box, and suppress overlaps
 (core.moving.detect_moving.moving_objects_from_flow). Both gates were measured to matter: on tiny
 held-out pairs the boxes from briefly trained flow went from AP3D@0.25 ≈ 0 to ≈ 0.46 with them.
 
-Frames (DESIGN.md §2): `ref0` is `world_T_ref0` when given, else the camera of view 0 at t0 (the
+Frames (docs/conventions.md#frames): `ref0` is `world_T_ref0` when given, else the camera of view 0 at t0 (the
 inference services' convention). Boxes are canonical (x, y, z, lx, ly, lz, yaw) in ref0; velocities
 are m/s along ref0's axes. Flow is B×3×Z×Y×X in voxels, channels (x, y, z), t0 -> t1.
 """

@@ -9,7 +9,7 @@ step (its egomotion input volume, its feature map and occupancy in its own `ref`
 `FrameEncoding` to pass in next time. Results equal the route calls (tests/unit/streaming compares
 them): the same functions run on the same inputs, only fewer times.
 
-Frames (DESIGN.md §2): `ref_t` is `world_T_ref_t` when given, else the camera of view 0 at t, as in
+Frames (docs/conventions.md#frames): `ref_t` is `world_T_ref_t` when given, else the camera of view 0 at t, as in
 core.pipeline.egomotion. Boxes are canonical rows in ref0 (the camera at t-1 for the bridge).
 """
 

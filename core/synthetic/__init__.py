@@ -1,6 +1,6 @@
 """The built-in synthetic RGB-D world: procedural urban-like scenes rendered by ray casting in torch.
 
-`generate_record(preset, seed=...)` returns one DESIGN.md §3 record; `WorldConfig` holds the world's
+`generate_record(preset, seed=...)` returns one record (docs/data.md#records); `WorldConfig` holds the world's
 knobs and `default_world_config(preset)` the defaults per preset.
 """
 

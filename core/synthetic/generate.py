@@ -1,4 +1,4 @@
-"""generate_record: sample a scene, render every (step, view), assemble a DESIGN.md §3 record.
+"""generate_record: sample a scene, render every (step, view), assemble a record (docs/data.md#records).
 
 Frames: boxes in `world` (canonical encoding), `world_T_ref[t]` the ego's gravity-aligned frame at step
 t (ground at ref y = +preset.ground_y), `world_T_cam[t, v] = world_T_ref[t] @ ref_T_cam[v]` (the rig is
@@ -26,7 +26,7 @@ def generate_record(preset: Preset, *, seed: int, num_views: int | None = None, 
     """One synthetic RGB-D record (T = num_frames or preset.num_frames steps, V = num_views or
     preset.num_views cameras, H×W from preset.camera, K = world.max_objects box rows).
 
-    Keys (DESIGN.md §3): rgb uint8 T×V×H×W×3, depth float32 T×V×H×W (metres along Z, 0 = none),
+    Keys (docs/data.md#records): rgb uint8 T×V×H×W×3, depth float32 T×V×H×W (metres along Z, 0 = none),
     pix_T_cam float32 V×4×4, world_T_cam float32 T×V×4×4, world_T_ref float32 T×4×4, boxes float32
     T×K×7 (world), box_valid bool T×K, box_id int32 K (1..n, -1 for padding rows), box_moving bool K.
 

@@ -1,6 +1,6 @@
 """Vectorised ray casting against a ground plane and oriented boxes.
 
-Frames (DESIGN.md §2): `world` is gravity-aligned with Y down; `cam` is OpenCV (X right, Y down,
+Frames (docs/conventions.md#frames): `world` is gravity-aligned with Y down; `cam` is OpenCV (X right, Y down,
 Z forward); `pix` integer coordinates are pixel centres. Boxes are canonical `(x, y, z, lx, ly, lz, yaw)`.
 
 Rays are kept in affine form: the ray of pixel (u, v) is o + t·d with d = A @ (u, v, 1), where A is the

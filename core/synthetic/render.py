@@ -1,6 +1,6 @@
 """Render RGB + depth of the synthetic world for a batch of cameras (ray casting + Lambertian shading).
 
-Frames (DESIGN.md §2): `world` gravity-aligned with Y down; `ref0` (the ego frame of step 0) differs
+Frames (docs/conventions.md#frames): `world` gravity-aligned with Y down; `ref0` (the ego frame of step 0) differs
 from it by a yaw and a horizontal shift only, so the ground is the plane y = ground_y in both; `cam`
 is OpenCV. Depth is metres along camera Z, 0 = no return (nothing hit, or beyond `max_depth`).
 Colour = albedo (textures.py) × (ambient + a sun + a fill light), so the faces of a box differ.

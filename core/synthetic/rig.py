@@ -2,7 +2,7 @@
 data: a lattice of viewpoints on a sphere around the ego car, V of them sampled per episode, each
 perturbed a little).
 
-Frames (DESIGN.md §2): `ref` is the ego's gravity-aligned frame (X right, Y down, Z forward), `cam`
+Frames (docs/conventions.md#frames): `ref` is the ego's gravity-aligned frame (X right, Y down, Z forward), `cam`
 is OpenCV (X right, Y down, Z forward). "Up" is -Y. Poses are `a_T_b` with p_a = a_T_b @ p_b.
 """
 

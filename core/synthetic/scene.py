@@ -2,7 +2,7 @@
 
 Everything is sampled in `ref0`, the ego's gravity-aligned frame at step 0 (X right, Y down, Z forward;
 the ground is the plane y = +ground_y; the street runs along ref0 Z). Boxes are canonical
-`(x, y, z, lx, ly, lz, yaw)` (centre, lengths along the object's x/y/z, yaw about Y, DESIGN.md §2);
+`(x, y, z, lx, ly, lz, yaw)` (centre, lengths along the object's x/y/z, yaw about Y, docs/conventions.md#boxes);
 a vehicle's heading is its object +x axis, i.e. (cos yaw, 0, -sin yaw) in the frame.
 Random draws come from one numpy Generator, so a seed fixes the scene.
 """

@@ -1,4 +1,4 @@
-"""Camera-from-ref transforms of a batch (DESIGN.md §2 naming: p_a = a_T_b @ p_b).
+"""Camera-from-ref transforms of a batch (docs/conventions.md#poses naming: p_a = a_T_b @ p_b).
 
 `cam_T_ref(batch, t_cam, t_ref)` lifts the views of time `t_cam` into the map frame `ref` of time
 `t_ref`: inv(world_T_cam[t_cam]) · world_T_ref[t_ref]. With t_cam = t_ref this only uses the rig

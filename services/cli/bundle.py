@@ -1,9 +1,11 @@
-"""`n3dmap bundle info B [--json]`: describe a model bundle (version, preset, grid, modules, provenance, metrics)."""
+"""`n3dmap bundle info B [--json]`: describe a model bundle (version, preset, grid, modules, lineage, metrics)."""
 
 from __future__ import annotations
 
 import argparse
 import json
+
+from services.cli.lineage import lineage_lines
 
 
 def describe_bundle(path: str) -> dict:
@@ -46,9 +48,9 @@ def format_description(d: dict) -> str:
     for name, m in d["modules"].items():
         lines.append(f"    {name:<{width}}  {m['kind']:<20} {m['parameters']:>12,}")
     if d["provenance"]:
-        lines.append("  provenance")
-        lines += [f"    {k}: {json.dumps(v) if isinstance(v, (dict, list)) else v}"
-                  for k, v in sorted(d["provenance"].items())]
+        # The provenance nests every ancestor's under "parents": one line per run reads; --json has it all.
+        lines.append("  lineage  (this bundle's run, then each bundle it was initialised from; --json: everything)")
+        lines += [f"    {line}" for line in lineage_lines(d["provenance"], d["path"])]
     if d["metrics"]:
         lines.append("  metrics")
         lines += [f"    {k}: {v:.6g}" if isinstance(v, float) else f"    {k}: {v}"
@@ -67,5 +69,6 @@ def register(subparsers) -> None:
     actions = bundle.add_subparsers(dest="action", metavar="ACTION", required=True)
     info = actions.add_parser("info", help="describe a bundle")
     info.add_argument("bundle", metavar="B", help="bundle directory (bundle.json + weights)")
-    info.add_argument("--json", action="store_true", help="print JSON")
+    info.add_argument("--json", action="store_true",
+                      help="print the full record as JSON (with every ancestor's whole provenance)")
     info.set_defaults(func=_info)

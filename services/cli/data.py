@@ -37,7 +37,8 @@ def episode_seed(seed: int, index: int) -> int:
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "data", help="generate, import, inspect and preview datasets",
-        description="Datasets are directories of manifest.json + tar shards of npz records (DESIGN.md §3).")
+        description="Datasets are directories of manifest.json + tar shards of npz records "
+                    "(docs/data.md#shards-and-manifest).")
     sub = parser.add_subparsers(dest="data_command", metavar="SUBCOMMAND", required=True)
 
     g = sub.add_parser("generate", help="render a synthetic dataset (built-in world, no downloads)",

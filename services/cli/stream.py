@@ -1,4 +1,4 @@
-"""`n3dmap stream bridge|camera|listen`: live RGB-D over zenoh (DESIGN.md §7)."""
+"""`n3dmap stream bridge|camera|listen`: live RGB-D over zenoh (docs/architecture.md#streaming-over-zenoh)."""
 
 from __future__ import annotations
 

@@ -20,13 +20,13 @@ from contextlib import asynccontextmanager
 from typing import Annotated, Any, Callable
 
 import numpy as np
-from fastapi import Depends, FastAPI, Query, Request
+from fastapi import Body, Depends, FastAPI, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
 from core.errors import BundleError, DataError, ShapeError
-from services.inference import codecs, schemas, wire
+from services.inference import codecs, examples, schemas, wire
 from services.inference.errors import (InvalidInput, ModuleUnavailable, NotReady, Overloaded,
                                        RequestTimeout, ServiceError)
 from services.inference.routes import DetectInput, MapInput, MovingInput, PairInput
@@ -59,10 +59,12 @@ def _service_error(e: Exception) -> JSONResponse:
     return error_response(500, "internal", f"{type(e).__name__}: {e}")
 
 
-def _request_body_schema(model: type[BaseModel], npz_doc: str) -> dict:
-    """OpenAPI requestBody naming both encodings: JSON (the model) or a binary .npz."""
+def _request_body_schema(model: type[BaseModel], npz_doc: str, json_examples: dict) -> dict:
+    """OpenAPI requestBody naming both encodings: JSON (the model, with request examples that Swagger's
+    "Try it out" sends as they are) or a binary .npz."""
     return {"requestBody": {"required": True, "content": {
-        "application/json": {"schema": {"$ref": f"#/components/schemas/{model.__name__}"}},
+        "application/json": {"schema": {"$ref": f"#/components/schemas/{model.__name__}"},
+                             "examples": json_examples},
         NPZ: {"schema": {"type": "string", "format": "binary"}, "description": npz_doc},
     }}}
 
@@ -149,7 +151,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
     # ------------------------------------------------------------------------------ routes
     @app.post("/v1/map", dependencies=guarded, response_model=schemas.MapResponseJSON, tags=["inference"],
               summary="Frames of one instant -> occupancy, heightmap (and features) in ref",
-              openapi_extra=_request_body_schema(schemas.MapRequestJSON, "arrays rgb, depth, pix_T_cam[, world_T_cam]"),
+              openapi_extra=_request_body_schema(schemas.MapRequestJSON, "arrays rgb, depth, pix_T_cam[, world_T_cam]",
+                                                 examples.MAP),
               responses=_ERRORS)
     async def map_route(request: Request,
                         features: Annotated[bool, Query(description="binary bodies: return features")] = False):
@@ -175,7 +178,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
 
     @app.post("/v1/egomotion", dependencies=guarded, response_model=schemas.EgomotionResponseJSON, tags=["inference"],
               summary="Frame pair -> cam0_T_cam1 (rigid 4×4)",
-              openapi_extra=_request_body_schema(schemas.PairRequestJSON, "arrays rgb0, depth0, pix_T_cam0, rgb1, ..."),
+              openapi_extra=_request_body_schema(schemas.PairRequestJSON, "arrays rgb0, depth0, pix_T_cam0, rgb1, ...",
+                                                 examples.PAIR),
               responses=_ERRORS)
     async def egomotion_route(request: Request):
         _, (v0, v1) = await pair_item(request, schemas.PairRequestJSON)
@@ -184,7 +188,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
 
     @app.post("/v1/flow", dependencies=guarded, response_model=schemas.FlowResponseJSON, tags=["inference"],
               summary="Frame pair -> 3D flow in ref (voxels, t0 -> t1)",
-              openapi_extra=_request_body_schema(schemas.PairRequestJSON, "arrays rgb0, depth0, pix_T_cam0, rgb1, ..."),
+              openapi_extra=_request_body_schema(schemas.PairRequestJSON, "arrays rgb0, depth0, pix_T_cam0, rgb1, ...",
+                                                 examples.PAIR),
               responses=_ERRORS)
     async def flow_route(request: Request):
         _, (v0, v1) = await pair_item(request, schemas.PairRequestJSON)
@@ -200,7 +205,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
 
     @app.post("/v1/detect", dependencies=guarded, response_model=schemas.DetectionsResponseJSON, tags=["inference"],
               summary="Frames of one instant -> scored 3D boxes in ref",
-              openapi_extra=_request_body_schema(schemas.DetectRequestJSON, "arrays rgb, depth, pix_T_cam[, world_T_cam]"),
+              openapi_extra=_request_body_schema(schemas.DetectRequestJSON,
+                                                 "arrays rgb, depth, pix_T_cam[, world_T_cam]", examples.DETECT),
               responses=_ERRORS)
     async def detect_route(request: Request,
                            min_score: Annotated[float, Query(ge=0, le=1, description="binary bodies")] = 0.0):
@@ -212,7 +218,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
 
     @app.post("/v1/moving-objects", dependencies=guarded, response_model=schemas.DetectionsResponseJSON, tags=["inference"],
               summary="Frame pair -> moving objects (oriented boxes with velocities) in ref",
-              openapi_extra=_request_body_schema(schemas.MovingObjectsRequestJSON, "arrays rgb0, depth0, ..., rgb1, ..."),
+              openapi_extra=_request_body_schema(schemas.MovingObjectsRequestJSON,
+                                                 "arrays rgb0, depth0, ..., rgb1, ...", examples.MOVING_OBJECTS),
               responses=_ERRORS)
     async def moving_route(request: Request,
                            min_score: Annotated[float, Query(ge=-1, le=1, description="binary bodies")] = -1.0):
@@ -229,7 +236,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
     @app.post("/v1/admin/reload", dependencies=guarded, response_model=schemas.ModelsResponseJSON, tags=["admin"],
               summary="Load a bundle (default: the current directory again); the old one keeps serving on failure",
               responses={409: {"model": schemas.ErrorJSON, "description": "loading failed; old bundle still serves"}})
-    async def reload_route(body: schemas.ReloadRequestJSON | None = None):
+    async def reload_route(body: Annotated[schemas.ReloadRequestJSON | None,
+                                           Body(openapi_examples=examples.RELOAD)] = None):
         try:
             return await runtime.reload(body.bundle if body else None)
         except BundleError as e:

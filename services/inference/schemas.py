@@ -1,20 +1,16 @@
 """JSON request/response schemas of the REST API (pydantic), with OpenAPI examples.
 
 Arrays travel as `{dtype, shape, data_b64}` (little-endian, C order, base64); images as PNG in
-base64 (`png_b64`) or as such an array; matrices as nested 4×4 lists.
+base64 (`png_b64`) or as such an array; matrices as nested 4×4 lists. The whole-request examples of
+each route are in services/inference/examples.py.
 """
 
 from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from services.inference.examples import example_view
 from services.inference.validation import MAX_VIEWS
-
-_EYE = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
-_K = [[96.0, 0.0, 95.5, 0.0], [0.0, 96.0, 31.5, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
-# A 1×1 black RGB PNG and a 1×1 16-bit depth PNG of 5000 mm, as base64.
-PNG_RGB_EXAMPLE = "iVBORw0KGgoAAAANSUhEUgAAAAEAAAABCAIAAACQd1PeAAAADElEQVR4nGNgYGAAAAAEAAH2FzhVAAAAAElFTkSuQmCC"
-PNG_DEPTH_EXAMPLE = "iVBORw0KGgoAAAANSUhEUgAAAAEAAAABEAAAAABq7kcWAAAAC0lEQVR4nGMQ7gAAALEAnISw/9sAAAAASUVORK5CYII="
 
 Matrix4 = list[list[float]]
 
@@ -40,9 +36,7 @@ class FrameJSON(BaseModel):
     """One RGB-D view: rgb H×W×3 uint8; depth H×W metres (float32 array) or millimetres (uint16 PNG/array);
     intrinsics `pix_T_cam` 4×4; camera pose `world_T_cam` 4×4 rigid (identity when absent)."""
 
-    model_config = ConfigDict(json_schema_extra={"examples": [{
-        "rgb": {"png_b64": PNG_RGB_EXAMPLE}, "depth": {"png_b64": PNG_DEPTH_EXAMPLE},
-        "pix_T_cam": _K, "world_T_cam": _EYE, "camera_id": "front", "sequence": 0, "timestamp": 0.0}]})
+    model_config = ConfigDict(json_schema_extra={"examples": [example_view()]})
     rgb: ImageJSON
     depth: ImageJSON
     pix_T_cam: Matrix4

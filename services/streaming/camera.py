@@ -4,7 +4,7 @@ Each sample carries the attachment `pub=<publisher id>` (a fresh id per process)
 bridge tell a restarted camera (sequence back at 0) from out-of-order frames. Frames are paced at
 `rate_hz` against a monotonic clock (no drift from processing time; after a stall of the source,
 such as rendering the next synthetic episode, the schedule restarts instead of bursting); `CongestionControl.BLOCK`
-means zenoh never silently drops a frame on the way out (ECOSYSTEM.md).
+means zenoh never silently drops a frame on the way out (docs/ecosystem.md#zenoh).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Key expressions of the n3dmap zenoh streams (DESIGN.md §7)."""
+"""Key expressions of the n3dmap zenoh streams (docs/architecture.md#streaming-over-zenoh)."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The listener: prints moving-object detections (and egomotion) as they arrive.
 
 Uses a FIFO channel handler pulled from the main thread (natural backpressure, no work on zenoh's
-callback thread, clean shutdown — ECOSYSTEM.md warns against closing sessions under callbacks).
+callback thread, clean shutdown — docs/ecosystem.md#zenoh warns against closing sessions under callbacks).
 """
 
 from __future__ import annotations

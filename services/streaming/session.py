@@ -1,7 +1,7 @@
 """Opening zenoh sessions: peer mode on loopback by default, client mode against a zenohd router.
 
 Multicast scouting is off unless asked for: it fails in containers and makes tests non-hermetic
-(ECOSYSTEM.md). Peers find each other through explicit `listen` / `connect` endpoints.
+(docs/ecosystem.md#zenoh). Peers find each other through explicit `listen` / `connect` endpoints.
 """
 
 from __future__ import annotations

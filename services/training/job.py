@@ -4,7 +4,7 @@
 
 - workers=0: the loop runs right here (no Ray), checkpoints under RUN_DIR/checkpoints/.
 - workers>=1: an embedded local Ray (one logical CPU more than the workers: Ray Data's read tasks
-  need one, see ECOSYSTEM.md) — or, with `config.attach`, the Ray cluster this process runs in (a
+  need one, see docs/ecosystem.md#ray) — or, with `config.attach`, the Ray cluster this process runs in (a
   Ray Jobs entrypoint) — runs `TorchTrainer` with a Ray Data stream of the shards split over the
   workers, DDP, `FailureConfig(max_failures)`, and checkpoints under RUN_DIR/ray_train/. The same
   RunConfig(name, storage_path) on a rerun makes Ray hand the latest checkpoint back: that is resume.
@@ -251,13 +251,23 @@ def export_bundle(config: TrainJobConfig, checkpoint_dir: str | Path, *, outcome
     last = outcome.last_metrics or state.metrics
     metrics = {f"last_{k}": float(v) for k, v in last.items()}
     metrics.update({f"mean_{k}": float(v) for k, v in outcome.mean_metrics.items()})
-    provenance = {
+    save_bundle(config.bundle_path, modules=modules, preset=get_preset(config.preset),
+                provenance=run_provenance(config, manifest=manifest, steps=state.step, parents=parents),
+                metrics=metrics)
+    return config.bundle_path
+
+
+def run_provenance(config: TrainJobConfig, *, manifest: dict, steps: int, parents: list[dict]) -> dict:
+    """The provenance a run's bundle records: the task and its options at the top level, the data, the
+    run's settings, and `parents` (core.bundle.parent_provenance of the --init bundle, which nests its
+    own parents: services/cli/lineage.py prints the chain)."""
+    return {
         "task": config.task,
         **{k: v for k, v in config.task_options.items()},
         "data_manifest": str(Path(config.data_dir) / "manifest.json"),
         "data_seed": manifest.get("seed"),
         "data_split": manifest.get("split"),
-        "steps": state.step,
+        "steps": steps,
         "workers": config.workers,
         "batch_size_per_worker": config.batch_size,
         "lr": config.lr,
@@ -269,9 +279,6 @@ def export_bundle(config: TrainJobConfig, checkpoint_dir: str | Path, *, outcome
         "run_id": config.run_path.name,
         "parents": parents,
     }
-    save_bundle(config.bundle_path, modules=modules, preset=get_preset(config.preset),
-                provenance=provenance, metrics=metrics)
-    return config.bundle_path
 
 
 def git_commit() -> str | None:

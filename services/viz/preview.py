@@ -1,7 +1,7 @@
 """Contact sheet of one record: RGB and depth of every view at the first and last step, plus a
 bird's-eye view of the boxes and cameras in `ref` at t=0.
 
-Frames (DESIGN.md §2): cameras are OpenCV (X right, Y down, Z forward); boxes are rows
+Frames (docs/conventions.md#frames): cameras are OpenCV (X right, Y down, Z forward); boxes are rows
 (x, y, z, lx, ly, lz, yaw) in `world` with yaw about Y, R = [[c,0,s],[0,1,0],[-s,0,c]].
 The bird's-eye view plots ref x to the right and ref z (forward) up; it is drawn in `ref` at t=0, so
 boxes of t=0 and t+1 and the camera centres are all moved into that one frame.

@@ -81,3 +81,11 @@ def test_contrastive_trains_then_warm_starts_a_frozen_run(tiny_train_data, tmp_p
     assert prov["init_bundle"] == str(first / "bundle") and prov["frozen"] == ["mapper"]
     assert prov["parents"][0]["provenance"]["objective"] == "contrastive"
     capsys.readouterr()
+
+    # `bundle info` prints the lineage one run per line: this run, then the bundle it started from.
+    assert main(["bundle", "info", str(second / "bundle")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    at = lines.index(next(line for line in lines if line.startswith("  lineage")))
+    assert lines[at + 1].startswith("    pretrain(objective=contrastive)  2 steps, seed 0, frozen mapper | data ")
+    assert lines[at + 2].startswith("    <- pretrain(objective=contrastive)  2 steps, seed 0 | data ")
+    assert f"| run {first} | git " in lines[at + 2] and not lines[at + 3].startswith("    ")

@@ -1,7 +1,7 @@
 """Helpers shared by the box evaluations (detection, moving objects): AP accumulators per method,
 precision-recall plots and bird's-eye views of boxes over a map image (Agg, no display).
 
-Boxes are canonical (x, y, z, lx, ly, lz, yaw) rows in the map frame `ref` (DESIGN.md §2); the
+Boxes are canonical (x, y, z, lx, ly, lz, yaw) rows in the map frame `ref` (docs/conventions.md#boxes); the
 bird's-eye view is the (x, z) plane seen from above (x right, z up the page).
 """
 

@@ -7,7 +7,7 @@ import pytest
 
 
 def build_record(*, T: int = 2, V: int = 2, H: int = 4, W: int = 6, K: int = 3, seed: int = 0) -> dict:
-    """A valid record of the DESIGN.md §3 schema with random contents (deterministic by seed)."""
+    """A valid record of the record schema (docs/data.md#records) with random contents (deterministic by seed)."""
     rng = np.random.default_rng(seed)
     pix_T_cam = np.tile(np.eye(4, dtype=np.float32), (V, 1, 1))  # V×4×4
     pix_T_cam[:, 0, 0] = pix_T_cam[:, 1, 1] = 5.0
