@@ -1,6 +1,6 @@
 """Amodal boxes: a moving component is the visible part of an object; fit the whole object.
 
-Conventions (docs: boxes are canonical (x, y, z, lx, ly, lz, yaw), Y down, yaw about Y; points N×3
+Conventions (docs/conventions.md#boxes: canonical (x, y, z, lx, ly, lz, yaw), Y down, yaw about Y; points N×3
 (x, y, z) in the frame of the boxes, metres). A camera sees the faces of an object that face it, so a
 component of moving voxels is one or two vertical faces of a box plus maybe its top: along a face the
 visible extent is the object's, across it only the surface's thickness (one voxel). The rule:
