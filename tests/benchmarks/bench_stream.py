@@ -16,6 +16,13 @@ the camera's source timestamp; one host, one clock) over the frames the bridge r
 dropped, sustained processed frames/s (first to last detection), latency p50/p99, the bridge's
 model time per stage (its status), the bridge's CPU seconds per processed frame, and the load
 average of the host before and after (the dev machine is shared: read the figures against it).
+
+Accuracy of what the stream publishes: the camera's episode is regenerated here (the same seed and
+frames, core.synthetic), and each published frame's boxes (in `ref` = the camera at the previous
+processed frame) are matched to the cars truly moving from that frame on (core.eval.moving_protocol's
+ground truth), greedily by score at 3D IoU 0.25 and 0.5 (core.eval.iou3d.iou_3d_across_frames: the
+camera is tilted, so the boxes are compared across frames). Printed: precision (matched boxes /
+published boxes) and recall (matched movers / true movers) over the whole run.
 """
 
 from __future__ import annotations
@@ -84,6 +91,40 @@ def fresh_bundle(preset_name: str, out: Path) -> Path:
     return untrained_stream_bundle(preset_name, out, provenance={"bench": "stream"})
 
 
+def box_accuracy(preset: str, frames: int, lines: list[dict], ious=(0.25, 0.5)) -> dict:
+    """Precision and recall of the published boxes against the regenerated episode's true movers."""
+    from core.eval.iou3d import iou_3d_across_frames
+    from core.eval.moving_protocol import gt_moving_boxes
+    from core.presets import get_preset
+    from core.synthetic import generate_record
+
+    grid = get_preset(preset).grid
+    # the camera's first (and only) episode: `--seed 0 --episode-frames FRAMES`, view 0
+    record = generate_record(get_preset(preset), seed=0, num_views=1, num_frames=frames)
+    counts = {iou: {"tp_boxes": 0, "found_movers": 0} for iou in ious}
+    published = movers = 0
+    for before, now in zip(lines, lines[1:]):
+        t = before["sequence"]
+        got = np.array([[b[k] for k in ("x", "y", "z", "lx", "ly", "lz", "yaw")]
+                        for b in sorted(now["boxes"], key=lambda b: -b["score"])]).reshape(-1, 7)
+        gt = np.asarray(gt_moving_boxes(record, t, grid, min_points=10)).reshape(-1, 7)      # in ref_t
+        cam_T_ref = np.linalg.inv(record["world_T_cam"][t, 0].astype(np.float64)) @ record["world_T_ref"][t]
+        overlap = iou_3d_across_frames(got, gt, cam_T_ref)                                    # K×G
+        published += len(got)
+        movers += len(gt)
+        for iou in ious:
+            taken = np.zeros(len(gt), dtype=bool)
+            for k in range(len(got)):                     # best score first
+                candidates = np.where(~taken & (overlap[k] >= iou))[0]
+                if len(candidates):
+                    taken[candidates[np.argmax(overlap[k, candidates])]] = True
+                    counts[iou]["tp_boxes"] += 1
+            counts[iou]["found_movers"] += int(taken.sum())
+    return {"published_boxes": published, "true_movers": movers,
+            **{f"precision@{iou}": round(c["tp_boxes"] / published, 3) if published else None for iou, c in counts.items()},
+            **{f"recall@{iou}": round(c["found_movers"] / movers, 3) if movers else None for iou, c in counts.items()}}
+
+
 def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     load_before = os.getloadavg()
@@ -135,6 +176,7 @@ def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
         "stages_ms": {k: v["p50"] for k, v in final.get("stages_ms", {}).items()},
         "step_ms_p99": final.get("stages_ms", {}).get("step_total", {}).get("p99"),
         "load_before": [round(x, 2) for x in load_before], "load_after": [round(x, 2) for x in load_after],
+        "boxes": box_accuracy(preset, args.frames, lines),
     }
 
 
@@ -160,6 +202,10 @@ def main(argv=None) -> int:
                   f"{result['e2e_ms_p50']} ms / p99 {result['e2e_ms_p99']} ms; bridge CPU "
                   f"{result['bridge_cpu_s_per_processed']} s per processed frame; load "
                   f"{result['load_before']} -> {result['load_after']}", flush=True)
+            acc = result["boxes"]
+            print(f"{preset}: {acc['published_boxes']} boxes published, {acc['true_movers']} true movers; precision / "
+                  f"recall at 3D IoU 0.25: {acc['precision@0.25']} / {acc['recall@0.25']}, at 0.5: "
+                  f"{acc['precision@0.5']} / {acc['recall@0.5']}", flush=True)
     return 0
 
 

@@ -114,3 +114,34 @@ def test_symmetric_and_accepts_torch_and_empty():
     assert iou_3d(box(lx=0), box(lx=0))[0, 0] == 0.0  # degenerate boxes: 0, not NaN
     with pytest.raises(ShapeError):
         iou_3d(np.zeros((3, 6)), a)
+
+
+def test_iou_across_frames_matches_the_exact_iou_where_both_apply():
+    """Frames related by a rotation about Y plus a shift: boxes of b carried into a stay canonical, so the
+    exact iou_3d is the reference for the lattice estimate."""
+    import math
+
+    from core.eval.iou3d import iou_3d, iou_3d_across_frames
+
+    rng = np.random.default_rng(3)
+    a_T_b = np.eye(4)
+    ang = 0.4
+    a_T_b[:3, :3] = [[math.cos(ang), 0, math.sin(ang)], [0, 1, 0], [-math.sin(ang), 0, math.cos(ang)]]
+    a_T_b[:3, 3] = [1.0, 0.2, -2.0]
+    boxes_b = np.column_stack([rng.uniform(-2, 2, (6, 3)), rng.uniform(1, 4, (6, 3)), rng.uniform(-1, 1, 6)])
+    centres_a = boxes_b[:, :3] @ a_T_b[:3, :3].T + a_T_b[:3, 3]
+    boxes_b_in_a = np.column_stack([centres_a, boxes_b[:, 3:6], boxes_b[:, 6] + ang])   # the same boxes, in a
+    boxes_a = boxes_b_in_a + np.column_stack([rng.uniform(-0.8, 0.8, (6, 3)), np.zeros((6, 3)), rng.uniform(-0.3, 0.3, 6)])
+    exact = iou_3d(boxes_a, boxes_b_in_a)
+    sampled = iou_3d_across_frames(boxes_a, boxes_b, a_T_b, samples_per_side=24)
+    np.testing.assert_allclose(sampled, exact, atol=0.03)
+    assert np.diag(exact).min() > 0.1                       # the test compares real overlaps, not zeros
+    # a tilted relation (pitched 0.5 rad about the box's own centre): the box against itself tilted
+    box = np.array([[0.0, 0.0, 5.0, 4.0, 1.5, 2.0, 0.3]])
+    assert iou_3d_across_frames(box, box, np.eye(4))[0, 0] == pytest.approx(1.0)
+    tilt = np.eye(4)
+    tilt[:3, :3] = [[1, 0, 0], [0, math.cos(0.5), -math.sin(0.5)], [0, math.sin(0.5), math.cos(0.5)]]
+    tilt[:3, 3] = box[0, :3] - tilt[:3, :3] @ box[0, :3]
+    moved = iou_3d_across_frames(box, box, tilt)[0, 0]
+    assert 0.3 < moved < 0.9                                # shares its centre, but the slabs cross
+    assert iou_3d_across_frames(np.zeros((0, 7)), box, tilt).shape == (0, 1)
