@@ -24,11 +24,13 @@ from core.eval.moving_protocol import camera_setting, gt_moving_boxes, moving_ob
 from core.moving.ground import DEFAULT_MARGIN_VOXELS, fit_ground_plane
 from core.pipeline.moving import DEFAULT_DT, OCCUPANCY_SOURCES, MovingObjectsConfig, boxes_from_flow, moving_objects
 from services.cli.argtypes import non_negative_float, positive_float, positive_int
-from services.cli.eval import add_eval_parser, iter_records, load_bundle_for_eval, resolve_device
+from services.cli.eval import (add_eval_parser, add_rerun_option, check_rerun_option, iter_records,
+                               load_bundle_for_eval, open_rerun_option, print_rerun_option, resolve_device)
 from services.cli.eval_detection import threshold_key
 from services.cli.eval_tasks.boxes_report import MethodAP, bev_boxes_figure, pr_figure
 from services.cli.eval_tasks.common import pair_inputs, record_batch
 from services.reports import Report
+from services.viz.rerun_paths import PAIR
 
 NEEDS = ("mapper", "flow")
 IOUS = (0.25, 0.33, 0.5)
@@ -60,6 +62,7 @@ def register(kinds) -> None:
     parser.add_argument("--min-points", type=positive_int, default=10,
                         help="depth points an object needs to count as ground truth")
     parser.add_argument("--no-baselines", action="store_true", help="skip the 2.5D baselines (faster)")
+    add_rerun_option(parser)
     parser.set_defaults(func=run)
 
 
@@ -68,15 +71,17 @@ def _np(boxes: torch.Tensor, scores: torch.Tensor, valid: torch.Tensor):
 
 
 def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_px: float, min_pixels: int,
-             min_points: int, baselines: bool = True) -> dict:
-    """AP accumulators per camera setting × method, pair counts and the richest example for a plot."""
+             min_points: int, baselines: bool = True, recorder=None) -> dict:
+    """AP accumulators per camera setting × method, pair counts and the richest example for a plot.
+    `recorder` (services.viz.rerun_eval.EvalRecorder) gets every pair: observed occupancy, the true and
+    the model's flow, the ground-truth moving boxes and the model's boxes with scores."""
     grid = bundle.preset.grid
     methods = METHODS if baselines else (MODEL, ORACLE_3D)
     acc = {cam: {m: MethodAP(IOUS) for m in methods} for cam in CAMERAS}
     pairs = {cam: 0 for cam in CAMERAS}
     stabilised_with = "egomotion (bundle)" if "egomotion" in bundle.modules else "poses (records)"
     example = None
-    for record in records:
+    for record_index, record in enumerate(records):
         batch = record_batch(record, device)
         for t in range(batch["rgb"].shape[1] - 1):
             cam = camera_setting(record, t)
@@ -87,7 +92,8 @@ def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_
             true_flow = gt_flow(record, t, grid)[None]                          # 1×3×Z×Y×X
             xyz, valid = points_in_ref(record, t)                               # the same ground plane rule
             ground = [fit_ground_plane(xyz[valid].double().numpy()) if config.ground_margin is not None else None]
-            oracle = boxes_from_flow(true_flow, gt_occupancy(record, t, grid)[None], grid, config, ground=ground)
+            observed = gt_occupancy(record, t, grid)[None]                       # 1×1×Z×Y×X
+            oracle = boxes_from_flow(true_flow, observed, grid, config, ground=ground)
             found[ORACLE_3D] = _np(oracle["boxes"][0], oracle["scores"][0], oracle["valid"][0])
             if baselines:
                 for name, (source, stabilise) in BASELINES.items():
@@ -97,6 +103,11 @@ def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_
             for name, (boxes, scores) in found.items():
                 acc[cam][name].add_frame(boxes, scores, gt)
             pairs[cam] += 1
+            if recorder is not None:
+                recorder.log_entry(record=record, record_index=record_index, t0=t, t1=t + 1,
+                                   occupancy=observed[0, 0].numpy() > 0.5, flow_true=true_flow[0].numpy(),
+                                   flow_pred=out["flow"][0].float().cpu().numpy(), boxes_true=gt,
+                                   boxes_pred=found[MODEL][0], scores_pred=found[MODEL][1], note=f"{cam} camera")
             if example is None or len(gt) > len(example["gt"]):
                 bev = out["flow"][0].norm(dim=0).amax(dim=1).cpu().numpy()      # Z×X voxels
                 example = {"gt": gt, "bev": bev, "camera": cam,
@@ -110,9 +121,9 @@ def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_
 
 def build_report(bundle, records, *, device, config: MovingObjectsConfig, threshold_px: float = 1.0,
                  min_pixels: int = 15, min_points: int = 10, baselines: bool = True, bundle_path=None,
-                 data_path=None, max_records=None) -> Report:
+                 data_path=None, max_records=None, recorder=None) -> Report:
     result = evaluate(bundle, records, device=device, config=config, threshold_px=threshold_px,
-                      min_pixels=min_pixels, min_points=min_points, baselines=baselines)
+                      min_pixels=min_pixels, min_points=min_points, baselines=baselines, recorder=recorder)
     keys = [threshold_key(t) for t in IOUS]
     report = Report(kind="moving", title="Moving-object detection evaluation", bundle=bundle_path, data=data_path,
                     settings={"max_records": max_records, "pairs_static_camera": result["pairs"]["static"],
@@ -161,14 +172,21 @@ def build_report(bundle, records, *, device, config: MovingObjectsConfig, thresh
 
 
 def run(args) -> int:
+    from services.viz.rerun_eval import close_eval_recorder
+
+    check_rerun_option(args)
     device = resolve_device(args.device)
     bundle = load_bundle_for_eval(args.bundle, device, NEEDS, data_dir=args.data)
     config = MovingObjectsConfig(dt=args.dt, min_speed=args.min_speed, min_voxels=args.min_voxels,
                                  occupancy=args.occupancy, ground_margin=None if args.no_ground else DEFAULT_MARGIN_VOXELS)
-    report = build_report(bundle, iter_records(args.data, args.max_records), device=device, config=config,
-                          threshold_px=args.flow_threshold_px, min_pixels=args.min_pixels,
-                          min_points=args.min_points, baselines=not args.no_baselines, bundle_path=args.bundle,
-                          data_path=args.data, max_records=args.max_records)
+    recorder = open_rerun_option(args, bundle, timeline=PAIR, kind="moving")
+    try:
+        report = build_report(bundle, iter_records(args.data, args.max_records), device=device, config=config,
+                              threshold_px=args.flow_threshold_px, min_pixels=args.min_pixels,
+                              min_points=args.min_points, baselines=not args.no_baselines, bundle_path=args.bundle,
+                              data_path=args.data, max_records=args.max_records, recorder=recorder)
+    finally:
+        close_eval_recorder(recorder)
     out = report.write(args.out)
     key = threshold_key(PRIMARY_IOU)
     for cam in CAMERAS:
@@ -178,6 +196,7 @@ def run(args) -> int:
         print(f"moving ({cam} camera, {report.metrics['moving_pairs'][cam]} pairs, {per[MODEL]['num_gt']} gt): "
               + ", ".join(f"{m} AP3D@{key} {_fmt(per[m]['ap3d'][key])}" for m in per))
     print(f"-> {out / 'report.md'}")
+    print_rerun_option(args, recorder)
     return 0
 
 
