@@ -53,20 +53,18 @@ def viewer_env(base: dict[str, str] | None = None) -> dict[str, str]:
 
 
 def rerun_executable() -> str:
-    """Path of the `rerun` binary shipped in the rerun-sdk wheel (its console script, or the binary
-    inside the `rerun_cli` package when the script is not on PATH)."""
+    """Path of the `rerun` binary shipped in the rerun-sdk wheel (package `rerun_cli`). Not the `rerun`
+    console script: that is a Python wrapper which runs the binary as its child, so stopping the
+    wrapper's PID would leave the binary (a viewer, a web server) running."""
     require_rerun()
-    beside_python = Path(sys.executable).with_name("rerun")
-    if beside_python.is_file():
-        return str(beside_python)
-    found = shutil.which("rerun")
-    if found:
-        return found
     import rerun_cli  # ships with rerun-sdk
 
     binary = Path(rerun_cli.__file__).with_name("rerun")
     if not binary.is_file():
-        raise RerunUnavailable(f"rerun-sdk is installed but its viewer binary is missing ({binary}); {INSTALL_HINT}")
+        found = shutil.which("rerun")
+        if found is None:
+            raise RerunUnavailable(f"rerun-sdk is installed but its viewer binary is missing ({binary}); {INSTALL_HINT}")
+        return found
     return str(binary)
 
 

@@ -166,3 +166,49 @@ def test_view_saves_every_message_it_receives(tmp_path):
     estimated = rec.at(paths.TRAJECTORY_EGO, "LineStrips3D:strips", paths.FRAME)
     assert sorted(estimated) == list(range(1, FRAMES))
     assert np.allclose(array(estimated[FRAMES - 1][0], 3), expected, atol=1e-4)
+
+
+def _listening_addresses(port: int) -> set[str]:
+    """Local IPv4/IPv6 addresses with a socket LISTENing on `port` (from /proc/net/tcp{,6})."""
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            local, state = line.split()[1], line.split()[3]
+            address, hex_port = local.rsplit(":", 1)
+            if state == "0A" and int(hex_port, 16) == port:  # 0A = LISTEN
+                found.add(address)
+    return found
+
+
+def test_serve_web_binds_loopback_serves_the_viewer_and_stops_with_the_view(tmp_path):
+    import re
+    import urllib.request
+
+    web_port, grpc_port = free_port(), free_port()
+    err_path = tmp_path / "view.err"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
+    with open(err_path, "wb") as err:
+        view = subprocess.Popen([sys.executable, "-m", "services.cli.main", "stream", "view", "--camera-id", CAMERA,
+                                 "--connect", f"tcp/127.0.0.1:{free_port()}", "--serve-web", str(web_port),
+                                 "--grpc-port", str(grpc_port), "--duration", "60"],
+                                cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err)
+    try:
+        wait_for(lambda: "viewer: subscribed" in err_path.read_text(), 60, "the view to start")
+        line = next(l for l in err_path.read_text().splitlines() if "web viewer at" in l)
+        assert f"http://127.0.0.1:{web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc_port}%2Fproxy" in line
+        rerun_pid = int(re.search(r"rerun pid (\d+)", line).group(1))
+        for port in (web_port, grpc_port):
+            assert _listening_addresses(port) == {"0100007F"}, port  # 127.0.0.1 only
+        with urllib.request.urlopen(f"http://127.0.0.1:{web_port}/", timeout=10) as page:
+            assert page.status == 200 and b"<html" in page.read().lower()
+    finally:
+        if view.poll() is None:
+            view.send_signal(signal.SIGTERM)
+        assert view.wait(30) == 0, err_path.read_text()
+    assert not _listening_addresses(web_port) and not _listening_addresses(grpc_port)
+    with pytest.raises(ProcessLookupError):
+        os.kill(rerun_pid, 0)  # the web server went with the view
