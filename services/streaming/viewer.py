@@ -117,6 +117,11 @@ def view(*, zenoh_options: ZenohOptions, camera_id: str, sink: StreamSink, stop:
     session = open_session(zenoh_options)
     try:
         sub = session.declare_subscriber(key, on_sample)
+        limits = [s for s in (duration_s, timeout_s) if s is not None]
+        give_up_at = time.monotonic() + min(limits) if limits else None
+        if not _wait_connected(session, stop, warn, give_up_at=give_up_at):
+            sub.undeclare()
+            return counts
         if on_ready is not None:
             on_ready(key)
         started = last = time.monotonic()
@@ -149,6 +154,26 @@ def view(*, zenoh_options: ZenohOptions, camera_id: str, sink: StreamSink, stop:
     finally:
         session.close()
     return counts
+
+
+def _wait_connected(session: zenoh.Session, stop: threading.Event | None, warn, *, give_up_at: float | None,
+                    warn_after_s: float = 5.0) -> bool:
+    """Until the session is connected to another zenoh node (False if `stop` is set or `give_up_at`
+    passes first).
+
+    A peer whose endpoint is not up yet (a bridge still loading its model) retries the connection in
+    the background, and only once connected does its subscription reach the publishers: announcing
+    readiness before that would let a caller start the camera into a viewer that misses its first frames."""
+    started, warned = time.monotonic(), False
+    while not (list(session.info.peers_zid()) or list(session.info.routers_zid())):
+        if (stop is not None and stop.wait(0.05)) or (give_up_at is not None and time.monotonic() > give_up_at):
+            return False
+        if stop is None:
+            time.sleep(0.05)
+        if not warned and warn is not None and time.monotonic() - started > warn_after_s:
+            warn(f"no zenoh peer or router reachable after {warn_after_s:.0f} s; still trying")
+            warned = True
+    return True
 
 
 def _dispatch(item, sink: StreamSink, counts: ViewCounts, warn) -> None:

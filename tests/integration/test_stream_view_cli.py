@@ -197,7 +197,8 @@ def test_serve_web_binds_loopback_serves_the_viewer_and_stops_with_the_view(tmp_
                                  "--grpc-port", str(grpc_port), "--duration", "60"],
                                 cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=err)
     try:
-        wait_for(lambda: "viewer: subscribed" in err_path.read_text(), 60, "the view to start")
+        # Nothing listens at --connect: the view serves the viewer and waits for a peer.
+        wait_for(lambda: "web viewer at" in err_path.read_text(), 60, "the view to start the web server")
         line = next(l for l in err_path.read_text().splitlines() if "web viewer at" in l)
         assert f"http://127.0.0.1:{web_port}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc_port}%2Fproxy" in line
         rerun_pid = int(re.search(r"rerun pid (\d+)", line).group(1))
