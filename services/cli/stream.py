@@ -100,6 +100,8 @@ def register(subparsers) -> None:
                       help="exit after N detection messages")
     view.add_argument("--timeout", type=positive_float, default=None, metavar="S", help="exit after S seconds of silence")
     view.add_argument("--duration", type=positive_float, default=None, metavar="S", help="exit after S seconds")
+    view.add_argument("--wait-for-bridge", type=non_negative_float, default=10.0, metavar="S",
+                      help="after connecting, wait up to S seconds to see a bridge before announcing readiness")
     add_zenoh_arguments(view, default_listen=False)
     view.set_defaults(func=_run_view)
 
@@ -228,6 +230,7 @@ def _run_view(args: argparse.Namespace) -> int:
         recorder = StreamRecorder(recording=rec)
         counts = view(zenoh_options=options, camera_id=args.camera_id, sink=recorder, stop=stop,
                       max_detections=args.count, timeout_s=args.timeout, duration_s=args.duration,
+                      wait_for_bridge_s=args.wait_for_bridge,
                       on_ready=lambda key: print(f"viewer: subscribed to {key}", file=sys.stderr, flush=True),
                       warn=lambda text: print(f"viewer: {text}", file=sys.stderr, flush=True))
     finally:

@@ -91,10 +91,12 @@ def decode_egomotion(payload: bytes) -> np.ndarray:
 
 def view(*, zenoh_options: ZenohOptions, camera_id: str, sink: StreamSink, stop: threading.Event | None = None,
          max_detections: int | None = None, timeout_s: float | None = None, duration_s: float | None = None,
-         on_ready: Callable[[str], None] | None = None, warn: Callable[[str], None] | None = None) -> ViewCounts:
+         on_ready: Callable[[str], None] | None = None, warn: Callable[[str], None] | None = None,
+         wait_for_bridge_s: float = 10.0) -> ViewCounts:
     """Feed `sink` with `camera_id`'s stream until `max_detections` Detections were logged, `timeout_s`
     of silence, `duration_s`, or `stop` is set. Returns the counts. Undecodable payloads are counted
-    (and reported through `warn`), never fatal."""
+    (and reported through `warn`), never fatal. `on_ready(key)` is called once the session is connected,
+    subscribed, and has seen a bridge's liveliness token (or waited `wait_for_bridge_s` for one)."""
     counts = ViewCounts()
     frames: collections.deque = collections.deque()
     outputs: collections.deque = collections.deque()
@@ -116,12 +118,15 @@ def view(*, zenoh_options: ZenohOptions, camera_id: str, sink: StreamSink, stop:
 
     session = open_session(zenoh_options)
     try:
-        sub = session.declare_subscriber(key, on_sample)
         limits = [s for s in (duration_s, timeout_s) if s is not None]
         give_up_at = time.monotonic() + min(limits) if limits else None
         if not _wait_connected(session, stop, warn, give_up_at=give_up_at):
-            sub.undeclare()
             return counts
+        # Declared on an established link, then confirmed by seeing a bridge (as the camera does):
+        # once a bridge's token is visible here, this subscription is known to it too.
+        sub = session.declare_subscriber(key, on_sample)
+        if wait_for_bridge_s > 0 and not _wait_for_bridge(session, wait_for_bridge_s) and warn is not None:
+            warn(f"no bridge answered within {wait_for_bridge_s:.0f} s; showing whatever arrives")
         if on_ready is not None:
             on_ready(key)
         started = last = time.monotonic()
@@ -174,6 +179,17 @@ def _wait_connected(session: zenoh.Session, stop: threading.Event | None, warn, 
             warn(f"no zenoh peer or router reachable after {warn_after_s:.0f} s; still trying")
             warned = True
     return True
+
+
+def _wait_for_bridge(session: zenoh.Session, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        replies = list(session.liveliness().get(keys.bridge_token("*"), timeout=1.0))
+        if any(r.ok is not None for r in replies):
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.1)
 
 
 def _dispatch(item, sink: StreamSink, counts: ViewCounts, warn) -> None:

@@ -21,6 +21,7 @@ import numpy as np
 
 from services.viz import rerun_paths as paths
 from services.viz.rerun_archetypes import boxes3d, grid_box, pinhole, speed_colors, transform, voxel_centres_ref
+from services.viz.rerun_blueprints import eval_blueprint
 
 DEFAULT_MAX_ARROWS = 2000
 DEFAULT_MIN_FLOW = 0.1  # voxels: below this a voxel's arrow would be a dot
@@ -71,6 +72,8 @@ class EvalRecorder:
         with scores_pred N, all in ref_t0. What is None is not logged."""
         rr, rec = self.rr, self.rec
         index = self.entries
+        if index == 0:  # the layout needs the number of views
+            rec.send_blueprint(eval_blueprint(views=record["rgb"].shape[1]))
         rec.set_time(self.timeline, sequence=index)
         steps = f"t={t0}" if t1 is None else f"t={t0}→{t1}"
         rec.log(paths.EVAL_LOG, rr.TextLog(f"entry {index}: record {record_index}, {steps}" + (f", {note}" if note else "")))

@@ -16,6 +16,7 @@ import numpy as np
 
 from services.viz import rerun_paths as paths
 from services.viz.rerun_archetypes import boxes3d, depth_points, grid_box, pinhole, transform
+from services.viz.rerun_blueprints import record_blueprint
 
 
 def log_record(rec, record: Mapping[str, np.ndarray], *, grid: Mapping | None = None, points: bool = False) -> None:
@@ -26,6 +27,7 @@ def log_record(rec, record: Mapping[str, np.ndarray], *, grid: Mapping | None = 
 
     rr = require_rerun()
     T, V, H, W, _ = record["rgb"].shape
+    rec.send_blueprint(record_blueprint(views=V))
     rec.log(paths.WORLD, rr.ViewCoordinates.RDF, static=True)
     if grid is not None:
         rec.log(paths.WORLD_GRID, grid_box(rr, grid), static=True)

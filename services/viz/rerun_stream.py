@@ -21,6 +21,7 @@ import numpy as np
 
 from services.viz import rerun_paths as paths
 from services.viz.rerun_archetypes import boxes3d, pinhole, transform
+from services.viz.rerun_blueprints import stream_blueprint
 
 DEFAULT_TRAJECTORY_POINTS = 2000  # the newest camera centres drawn (the strip is logged whole per frame)
 
@@ -42,6 +43,7 @@ class StreamRecorder:
         self._last_detections: int | None = None            # sequence of the newest Detections
         self._previous_detections: int | None = None        # ... and of the one before (the pair's first frame)
         self._pair_world_T_frame: np.ndarray | None = None  # world_T_frame of the newest Detections
+        self.rec.send_blueprint(stream_blueprint())
         self.rec.log(paths.WORLD, self.rr.ViewCoordinates.RDF, static=True)
 
     def _at(self, sequence: int, timestamp: float | None) -> None:

@@ -98,6 +98,7 @@ def wait_for(predicate, timeout_s: float, what: str):
 def test_view_saves_every_message_it_receives(tmp_path):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     session = open_session(ZenohOptions(mode="peer", listen=(endpoint,)))
+    token = session.liveliness().declare_token(keys.bridge_token("test"))  # the view waits to see a bridge
     rrd, err_path = tmp_path / "stream.rrd", tmp_path / "view.err"
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
     with open(err_path, "wb") as err:
@@ -125,6 +126,7 @@ def test_view_saves_every_message_it_receives(tmp_path):
         if view.poll() is None:
             view.send_signal(signal.SIGTERM)
             view.wait(30)
+        token.undeclare()
         session.close()
 
     log = err_path.read_text()
