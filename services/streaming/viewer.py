@@ -156,6 +156,15 @@ def view(*, zenoh_options: ZenohOptions, camera_id: str, sink: StreamSink, stop:
                 _dispatch(item, sink, counts, warn)
         finally:
             sub.undeclare()
+        if done_at is None:
+            # Stopped (signal, silence, duration): what already arrived is logged too — on a loaded
+            # machine the last detections may still be queued when the caller stops the view.
+            with cond:
+                remaining = [*outputs, *frames]
+                outputs.clear()
+                frames.clear()
+            for item in remaining:
+                _dispatch(item, sink, counts, warn)
     finally:
         session.close()
     return counts
