@@ -32,7 +32,9 @@ def main() -> int:
     parser.add_argument("--timeline", default="frame")
     parser.add_argument("--frame", type=int, default=None, help="sequence to show on --timeline (default: the last)")
     parser.add_argument("--size", default="1280x720", help="viewer size in logical points")
-    parser.add_argument("--settle", type=float, default=5.0, help="seconds to let the software renderer catch up")
+    parser.add_argument("--settle", type=float, default=8.0,
+                        help="seconds to let the software renderer catch up (and the viewer's start-up toast fade)")
+    parser.add_argument("--palette", action="store_true", help="re-encode as a 256-colour PNG (a third of the size)")
     args = parser.parse_args()
 
     from rerun.experimental import ViewerClient
@@ -57,6 +59,10 @@ def main() -> int:
         except subprocess.TimeoutExpired:
             viewer.kill()
             viewer.wait()
+    if args.palette:
+        from PIL import Image
+
+        Image.open(args.out).convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(args.out, optimize=True)
     print(f"wrote {args.out} ({args.out.stat().st_size / 1024:.0f} kB)")
     return 0
 

@@ -44,9 +44,10 @@ def stream_blueprint():
     """`stream view`: the world with the camera's trajectory and detections, the current frame, the latency."""
     rrb = _rrb()
     return rrb.Blueprint(
-        # The eye follows the camera, so the newest frame's points and boxes stay in view as it drives.
+        # The eye rides behind and above the camera (StreamRecorder's chase entity), so the newest frame's
+        # points and boxes stay in view as it drives.
         rrb.Horizontal(rrb.Spatial3DView(origin=paths.WORLD, name="world",
-                                         eye_controls=rrb.EyeControls3D(tracking_entity=paths.STREAM_CAMERA)),
+                                         eye_controls=rrb.EyeControls3D(tracking_entity=paths.STREAM_EYE)),
                        rrb.Vertical(rrb.Spatial2DView(origin=paths.STREAM_IMAGE, name="camera"),
                                     rrb.TimeSeriesView(origin=paths.LATENCY, name="end-to-end latency (ms)"),
                                     row_shares=[2, 1]),

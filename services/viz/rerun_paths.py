@@ -56,6 +56,8 @@ EVAL_LOG = "eval/log"                     # TextLog: which record and steps each
 # -- live stream (n3dmap stream view), frame `world`
 STREAM_CAMERA = "world/camera"            # Transform3D world_T_cam of the newest frame
 STREAM_IMAGE = "world/camera/image"       # Pinhole + Image + DepthImage of the newest frame
+STREAM_EYE = "world/camera/chase"         # static Transform3D + Pinhole behind and above the camera: the 3D
+                                          # view's default eye follows it (a chase view of the scene)
 TRAJECTORY = "world/trajectory"           # LineStrips3D: camera centres from the frames' poses
 TRAJECTORY_EGO = "world/trajectory_egomotion"  # LineStrips3D: the bridge's egomotion chained from frame 1
 DETECTIONS_FRAME = "world/detections"     # Transform3D world_T_frame of the newest detections (their `ref`)

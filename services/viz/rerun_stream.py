@@ -45,6 +45,20 @@ class StreamRecorder:
         self._pair_world_T_frame: np.ndarray | None = None  # world_T_frame of the newest Detections
         self.rec.send_blueprint(stream_blueprint())
         self.rec.log(paths.WORLD, self.rr.ViewCoordinates.RDF, static=True)
+        self._log_chase_eye()
+
+    def _log_chase_eye(self, *, back: float = 12.0, up: float = 5.0, pitch_deg: float = 15.0) -> None:
+        """A virtual camera `back` m behind and `up` m above the stream's camera, pitched down, in its frame
+        (static: it moves with the camera); the default 3D view looks through it."""
+        rr = self.rr
+        a = np.deg2rad(pitch_deg)
+        pose = np.eye(4)
+        # Rotation about X by -pitch turns +Z (forward) down toward +Y (down): R = [[1,0,0],[0,c,s],[0,-s,c]]ᵀ
+        pose[:3, :3] = [[1, 0, 0], [0, np.cos(a), np.sin(a)], [0, -np.sin(a), np.cos(a)]]
+        pose[:3, 3] = [0.0, -up, -back]
+        self.rec.log(paths.STREAM_EYE, transform(rr, pose), static=True)
+        k = np.array([[640.0, 0, 640, 0], [0, 640.0, 360, 0], [0, 0, 1, 0], [0, 0, 0, 1]])  # 90° wide, 16:9
+        self.rec.log(paths.STREAM_EYE, pinhole(rr, k, height=720, width=1280, image_plane_distance=0.5), static=True)
 
     def _at(self, sequence: int, timestamp: float | None) -> None:
         self.rec.set_time(paths.FRAME, sequence=int(sequence))
