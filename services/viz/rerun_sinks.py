@@ -14,9 +14,11 @@ The Python SDK can host a web viewer itself, but in 0.41 its HTTP server always 
 
 from __future__ import annotations
 
+import os
 import signal
 import socket
 import subprocess
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -116,6 +118,9 @@ def spawn_viewer(*, timeout_s: float = 30.0) -> ViewerProcess:
     """A detached native viewer listening on a free loopback port (its window outlives the command)."""
     from services.viz.rerun_sdk import rerun_executable, viewer_env
 
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise ViewerError("--spawn opens a window, but there is no display (DISPLAY and WAYLAND_DISPLAY are unset); "
+                          "use --save FILE.rrd or --serve-web PORT")
     port = free_port()
     cmd = [rerun_executable(), "--bind", "127.0.0.1", "--port", str(port), "--expect-data-soon"]
     proc = subprocess.Popen(cmd, env=viewer_env(), stdin=subprocess.DEVNULL, start_new_session=True)

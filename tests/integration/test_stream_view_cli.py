@@ -215,3 +215,22 @@ def test_serve_web_binds_loopback_serves_the_viewer_and_stops_with_the_view(tmp_
     assert not _listening_addresses(web_port) and not _listening_addresses(grpc_port)
     with pytest.raises(ProcessLookupError):
         os.kill(rerun_pid, 0)  # the web server went with the view
+
+
+def test_bad_view_options_are_one_line_errors(tmp_path, capsys, monkeypatch):
+    import services.cli.main as cli_main
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    for extra, fragment in ((["--spawn"], "no display"),
+                            (["--save", str(tmp_path)], "is a directory"),
+                            (["--save", str(blocker / "s.rrd")], str(blocker / "s.rrd")),
+                            (["--save", str(tmp_path / "s.rrd"), "--host", "0.0.0.0"], "--serve-web"),
+                            (["--camera-id", "cam/*", "--save", str(tmp_path / "s.rrd")], "single key chunk")):
+        argv = ["stream", "view", "--camera-id", CAMERA, *extra]
+        code = cli_main.main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and err[0].startswith("n3dmap stream: error: ") and fragment in err[0], (argv, err)
+    assert not (tmp_path / "s.rrd").exists()
