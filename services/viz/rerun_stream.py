@@ -90,8 +90,8 @@ class StreamRecorder:
         world_T_frame 4×4 (None: drawn in world as if ref were world), received_at (epoch seconds)."""
         rr = self.rr
         self._at(sequence, timestamp)
-        if world_T_frame is not None:
-            self.rec.log(paths.DETECTIONS_FRAME, transform(rr, world_T_frame))
+        # Logged every time (identity when the message names no pose), so no earlier pose lingers.
+        self.rec.log(paths.DETECTIONS_FRAME, transform(rr, np.eye(4) if world_T_frame is None else world_T_frame))
         boxes = np.asarray(boxes, np.float32).reshape(-1, 7)
         velocities = np.asarray(velocities, np.float32).reshape(-1, 3)
         speeds = np.linalg.norm(velocities, axis=1)
