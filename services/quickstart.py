@@ -79,11 +79,13 @@ def main(argv: list[str] | None = None) -> int:
 
     if not args.skip_serve:
         serve_and_call(bundle, data)
+    recording = None
     if not args.skip_stream:
-        stream(bundle)
+        recording = stream(bundle, out)
 
     print(f"\nquickstart finished in {time.monotonic() - started:.0f} s; everything is under {out}/:"
-          f"\n  {out}/preview.png, {runs}/*/metrics.jsonl, {bundle}, {reports}/all/report.md", flush=True)
+          f"\n  {out}/preview.png, {runs}/*/metrics.jsonl, {bundle}, {reports}/all/report.md"
+          + (f", {recording} (open it with `rerun {recording}`)" if recording else ""), flush=True)
     return 0
 
 
@@ -137,33 +139,73 @@ def serve_and_call(bundle: Path, data: Path) -> None:
             server.wait()
 
 
-def stream(bundle: Path) -> None:
-    """6. Bridge + simulated camera + listener over zenoh on loopback (peer mode)."""
+def rerun_installed() -> bool:
+    """Whether the viz extra (rerun-sdk) is importable: the stream step then also records stream.rrd."""
+    import importlib.util
+
+    return importlib.util.find_spec("rerun") is not None
+
+
+def stream(bundle: Path, out_dir: Path) -> Path | None:
+    """6. Bridge + simulated camera + listener over zenoh on loopback (peer mode), and with the viz
+    extra a `stream view` recording everything to OUT/stream.rrd. Returns that recording's path."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     frames = 16
+    recording = out_dir / "stream.rrd" if rerun_installed() else None
     bridge_cmd = ["stream", "bridge", "--bundle", str(bundle), "--listen", endpoint, "--duration", "300",
                   "--bridge-id", "quickstart", "--status-every", "0"]
     listen_cmd = ["stream", "listen", "--camera-id", "cam0", "--connect", endpoint]
+    view_cmd = ["stream", "view", "--camera-id", "cam0", "--connect", endpoint, "--save", str(recording)]
     camera_cmd = ["stream", "camera", "--camera-id", "cam0", "--synthetic", "--rate", "5", "--frames", str(frames),
                   "--connect", endpoint]
-    print("\n== 6. stream a simulated camera through the zenoh bridge", flush=True)
-    for cmd in (bridge_cmd, listen_cmd, camera_cmd):
+    print("\n== 6. stream a simulated camera through the zenoh bridge"
+          + (" (and record it for the 3D viewer)" if recording else ""), flush=True)
+    for cmd in (bridge_cmd, listen_cmd, *([view_cmd] if recording else []), camera_cmd):
         print(f"$ n3dmap {shlex.join(cmd)} &", flush=True)
     bridge = subprocess.Popen(CLI + bridge_cmd, stdout=subprocess.PIPE, text=True)
     listener = subprocess.Popen(CLI + listen_cmd)
+    view, view_log = None, out_dir / "stream_view.log"
+    if recording:
+        with open(view_log, "wb") as log:
+            view = subprocess.Popen(CLI + view_cmd, stderr=log)
     try:
         time.sleep(2.0)
+        if view is not None:
+            wait_for_line(view, view_log, "viewer: subscribed", timeout_s=300)
         code = subprocess.call(CLI + camera_cmd)
         if code != 0:
             raise SystemExit(f"quickstart: the simulated camera failed with exit status {code}")
         wait_until_bridge_idle(endpoint, bridge_id="quickstart", camera="cam0", frames=frames)
-        time.sleep(0.5)  # the last detections are on their way to the listener
+        time.sleep(0.5)  # the last detections are on their way to the listener and the view
     finally:
-        for proc in (listener, bridge):
-            if proc.poll() is None:
+        for proc in (listener, view, bridge):
+            if proc is not None and proc.poll() is None:
                 proc.send_signal(signal.SIGTERM)
         out, _ = bridge.communicate(timeout=60)
         listener.wait(timeout=30)
+        if view is not None:
+            view.wait(timeout=60)
+    if view is not None:
+        if view.returncode != 0:
+            raise SystemExit(f"quickstart: `n3dmap stream view` failed with exit status {view.returncode}; "
+                             f"see {view_log}")
+        summary = [line for line in view_log.read_text().splitlines() if line.startswith("viewer: logged")]
+        size = recording.stat().st_size / 2**20
+        print(f"   {summary[-1] if summary else 'viewer: (no summary)'} ({size:.1f} MB)", flush=True)
+    report_bridge_accounting(out)
+    return recording
+
+
+def wait_for_line(proc: subprocess.Popen, log: Path, text: str, *, timeout_s: float) -> None:
+    """Until `text` appears in the process's log (it exited or the time ran out: an error)."""
+    deadline = time.monotonic() + timeout_s
+    while text not in log.read_text(errors="replace"):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            raise SystemExit(f"quickstart: `n3dmap {shlex.join(proc.args[3:])}` did not print {text!r}; see {log}")
+        time.sleep(0.1)
+
+
+def report_bridge_accounting(out: str) -> None:
     for line in out.splitlines():
         if line.startswith('{"final_status"'):
             status = json.loads(line)["final_status"]["cameras"].get("cam0", {})

@@ -4,7 +4,7 @@
                          [--split train|val] [--moving-ego on|off|mixed] [--sparse-depth]
                          [--noise SIGMA] [--shard-mb MB] [--overwrite] [--jobs N]
     n3dmap data info DIR [--verify] [--json]
-    n3dmap data preview DIR --out FILE.png [--index I]
+    n3dmap data preview DIR [--out FILE.png] [--rerun FILE.rrd [--points]] [--index I]
     n3dmap data import authors-npz|kitti|tum SRC --out DIR [...]
 
 Seeds: record i of `generate --seed S` is `core.synthetic.generate_record(preset, seed=S*100003 + i)`,
@@ -68,9 +68,16 @@ def register(subparsers) -> None:
     i.add_argument("--json", action="store_true", help="print the manifest (without key lists) as JSON")
     i.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("preview", help="write a PNG contact sheet of one record")
+    p = sub.add_parser("preview", help="write a PNG contact sheet of one record, or a Rerun recording of it",
+                       description="Preview one record: a PNG contact sheet (--out) and/or a Rerun recording "
+                                   "(--rerun; open it with `rerun FILE.rrd`) of its cameras, RGB-D and "
+                                   "ground-truth boxes in 3D over its time steps.")
     p.add_argument("dir", type=Path)
-    p.add_argument("--out", required=True, type=Path, help="PNG file to write")
+    p.add_argument("--out", type=Path, default=None, help="PNG file to write")
+    p.add_argument("--rerun", type=Path, default=None, metavar="FILE.rrd",
+                   help="Rerun recording to write (needs the viz extra: pip install -e '.[viz]')")
+    p.add_argument("--points", action="store_true",
+                   help="with --rerun: log each view's depth as a point cloud instead of a DepthImage")
     p.add_argument("--index", type=int, default=0, help="record index (negative counts from the end)")
     p.set_defaults(func=cmd_preview)
 
@@ -277,19 +284,39 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_preview(args: argparse.Namespace) -> int:
     from core.data.shards import ShardDataset
 
-    if args.out.is_dir():
+    if args.out is None and args.rerun is None:
+        raise N3dmapError("give --out FILE.png, --rerun FILE.rrd or both")
+    if args.points and args.rerun is None:
+        raise N3dmapError("--points applies to the Rerun recording: give --rerun FILE.rrd")
+    if args.out is not None and args.out.is_dir():
         raise N3dmapError(f"--out {args.out} is a directory; give the PNG file to write (e.g. {args.out / 'preview.png'})")
+    if args.rerun is not None:  # before reading anything: a missing extra or a bad path is the first error
+        from services.viz.rerun_sdk import check_rrd_path, require_rerun
+        require_rerun()
     ds = ShardDataset(args.dir)
     n = len(ds)
     if not -n <= args.index < n:
         raise N3dmapError(f"--index {args.index} is out of range for {args.dir} ({n} records)")
     record = ds[args.index]
-    from services.viz.preview import contact_sheet   # matplotlib only once there is a record to draw
     key = ds.key(args.index)
     title = f"{args.dir.name}: record {args.index % n} ({key}), preset {ds.manifest.get('preset')}, " \
             f"split {ds.manifest.get('split')}"
-    out = contact_sheet(record, args.out, title=title, grid=ds.manifest.get("grid") or None)
-    print(f"wrote {out}")
+    if args.out is not None:
+        from services.viz.preview import contact_sheet   # matplotlib only once there is a record to draw
+        out = contact_sheet(record, args.out, title=title, grid=ds.manifest.get("grid") or None)
+        print(f"wrote {out}")
+    if args.rerun is not None:
+        from services.viz.rerun_record import log_record
+        from services.viz.rerun_sdk import close_recording, open_recording
+
+        path = check_rrd_path(args.rerun)
+        rec = open_recording(name=title, save_to=path)
+        try:
+            log_record(rec, record, grid=ds.manifest.get("grid") or None, points=args.points)
+        finally:
+            close_recording(rec)
+        T, V = record["rgb"].shape[:2]
+        print(f"wrote {path} ({_human_bytes(path.stat().st_size)}: {V} cameras × {T} steps; open it with `rerun {path}`)")
     return 0
 
 

@@ -43,6 +43,42 @@ def add_eval_parser(kinds, name: str, *, help: str, description: str | None = No
     return parser
 
 
+def add_rerun_option(parser: argparse.ArgumentParser) -> None:
+    """`--rerun FILE.rrd`: record each evaluated item in 3D (services.viz.rerun_eval)."""
+    parser.add_argument("--rerun", metavar="FILE.rrd", default=None,
+                        help="also write a Rerun recording of every evaluated item in 3D, in ref (open it with "
+                             "`rerun FILE.rrd`; needs the viz extra: pip install -e '.[viz]')")
+
+
+def check_rerun_option(args: argparse.Namespace) -> None:
+    """Fail before any slow work when --rerun cannot be honoured (no viz extra, unwritable path)."""
+    if getattr(args, "rerun", None) is not None:
+        from services.viz.rerun_sdk import check_rrd_path, require_rerun
+
+        require_rerun()
+        check_rrd_path(args.rerun)
+
+
+def open_rerun_option(args: argparse.Namespace, bundle, *, timeline: str, kind: str):
+    """The EvalRecorder of --rerun (None without it); close it with services.viz.rerun_eval.close_eval_recorder."""
+    if getattr(args, "rerun", None) is None:
+        return None
+    from services.viz.rerun_eval import open_eval_recorder
+
+    return open_eval_recorder(args.rerun, grid=bundle.preset.grid.to_dict(), timeline=timeline,
+                              name=f"n3dmap eval {kind}: {args.bundle} on {args.data}")
+
+
+def print_rerun_option(args: argparse.Namespace, recorder) -> None:
+    """One line naming the recording --rerun wrote, its size and entry count."""
+    if recorder is not None:
+        from services.cli.data import _human_bytes
+
+        size = _human_bytes(Path(args.rerun).stat().st_size)
+        print(f"-> {args.rerun} ({size}, {recorder.entries} entries on timeline '{recorder.timeline}'; "
+              f"open it with `rerun {args.rerun}`)")
+
+
 def resolve_device(choice: str):
     """'auto' -> cuda if available else cpu; anything else as given (a clear error if unavailable)."""
     import torch

@@ -24,7 +24,7 @@ AREAS: dict[str, str] = {
     "eval": "evaluate a bundle on a dataset and write a report",
     "bench": "benchmarks that reproduce the paper's tables on the synthetic world",
     "serve": "serve a model bundle over REST (FastAPI) and gRPC",
-    "stream": "live RGB-D over zenoh: bridge, simulated camera, listener",
+    "stream": "live RGB-D over zenoh: bridge, simulated camera, listener, 3D viewer",
 }
 
 

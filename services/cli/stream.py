@@ -1,4 +1,5 @@
-"""`n3dmap stream bridge|camera|listen`: live RGB-D over zenoh (docs/architecture.md#streaming-over-zenoh)."""
+"""`n3dmap stream bridge|camera|listen|view`: live RGB-D over zenoh (docs/architecture.md#streaming-over-zenoh);
+`view` shows one camera's stream in the Rerun viewer (services.streaming.viewer + services.viz.rerun_stream)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import signal
 import sys
 import threading
 import time
+from pathlib import Path
 
 from services.cli.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
 from services.streaming.session import add_zenoh_arguments, options_from_args
@@ -21,7 +23,7 @@ DEFAULT_FRAME_DT = 0.2
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
-        "stream", help="live RGB-D over zenoh: bridge, simulated camera, listener",
+        "stream", help="live RGB-D over zenoh: bridge, simulated camera, listener, 3D viewer",
         description="Stream RGB-D frames over zenoh into the bridge (egomotion → stabilised 3D flow → moving "
                     "objects) and receive its detections. Embedded default: peer mode on loopback, the bridge "
                     "listening on tcp/127.0.0.1:7447; deployment: --mode client --connect tcp/ROUTER:7447.")
@@ -77,6 +79,31 @@ def register(subparsers) -> None:
     listen.add_argument("--timeout", type=positive_float, default=None, metavar="S", help="exit after S seconds of silence")
     add_zenoh_arguments(listen, default_listen=False)
     listen.set_defaults(func=_run_listen)
+
+    view = sub.add_parser(
+        "view", help="show a camera's frames, detections and egomotion live in the Rerun 3D viewer",
+        description="Subscribe to n3dmap/<camera>/{rgbd,moving_objects,egomotion} and log them to Rerun: the "
+                    "camera trajectory, the current RGB-D frame and the published boxes with their velocities, "
+                    "in world (README '3D viewer (Rerun)'). Needs the viz extra: pip install -e '.[viz]'.")
+    view.add_argument("--camera-id", required=True, help="camera to show (one key chunk, no wildcards)")
+    sink = view.add_mutually_exclusive_group(required=True)
+    sink.add_argument("--save", metavar="FILE.rrd", type=Path, help="write a recording (open it with `rerun FILE.rrd`)")
+    sink.add_argument("--spawn", action="store_true", help="open a native Rerun viewer window (needs a display)")
+    sink.add_argument("--serve-web", type=positive_int, metavar="PORT",
+                      help="serve the Rerun web viewer on http://HOST:PORT (see --host)")
+    view.add_argument("--host", default="127.0.0.1",
+                      help="with --serve-web: address to bind (default 127.0.0.1, this machine only; 0.0.0.0 "
+                           "serves the network)")
+    view.add_argument("--grpc-port", type=positive_int, default=None,
+                      help="with --serve-web: port of the viewer's data proxy (default: a free one)")
+    view.add_argument("--count", type=positive_int, default=None, metavar="N",
+                      help="exit after N detection messages")
+    view.add_argument("--timeout", type=positive_float, default=None, metavar="S", help="exit after S seconds of silence")
+    view.add_argument("--duration", type=positive_float, default=None, metavar="S", help="exit after S seconds")
+    view.add_argument("--wait-for-bridge", type=non_negative_float, default=10.0, metavar="S",
+                      help="after connecting, wait up to S seconds to see a bridge before announcing readiness")
+    add_zenoh_arguments(view, default_listen=False)
+    view.set_defaults(func=_run_view)
 
 
 def default_bridge_threads() -> int:
@@ -173,6 +200,47 @@ def _run_listen(args: argparse.Namespace) -> int:
                    on_ready=lambda key: print(f"listener: subscribed to {key}", file=sys.stderr, flush=True),
                    stop=_stop_event())
     print(f"listener: received {count} detection messages", file=sys.stderr, flush=True)
+    return 0
+
+
+def _run_view(args: argparse.Namespace) -> int:
+    from services.cli.main import CliError
+
+    _check_camera_id(args.camera_id)
+    if args.serve_web is None and (args.host != "127.0.0.1" or args.grpc_port is not None):
+        raise CliError("--host and --grpc-port apply to --serve-web")
+    options = _zenoh_options(args, default_listen=False)
+    from services.viz.rerun_sdk import check_rrd_path, close_recording, open_recording, require_rerun
+
+    require_rerun()
+    save = check_rrd_path(args.save, flag="--save") if args.save is not None else None
+    from services.streaming.viewer import view
+    from services.viz.rerun_sinks import attach
+    from services.viz.rerun_stream import StreamRecorder
+
+    stop = _stop_event()
+    rec = open_recording(name=f"n3dmap stream {args.camera_id}")
+    viewer = attach(rec, save=save, spawn=args.spawn, serve_web=args.serve_web, host=args.host,
+                    grpc_port=args.grpc_port)
+    if viewer is not None and viewer.web_url:
+        print(f"viewer: web viewer at {viewer.web_url} (rerun pid {viewer.pid})", file=sys.stderr, flush=True)
+    elif viewer is not None:
+        print(f"viewer: native viewer pid {viewer.pid}, data at {viewer.grpc_url}", file=sys.stderr, flush=True)
+    try:
+        recorder = StreamRecorder(recording=rec)
+        counts = view(zenoh_options=options, camera_id=args.camera_id, sink=recorder, stop=stop,
+                      max_detections=args.count, timeout_s=args.timeout, duration_s=args.duration,
+                      wait_for_bridge_s=args.wait_for_bridge,
+                      on_ready=lambda key: print(f"viewer: subscribed to {key}", file=sys.stderr, flush=True),
+                      warn=lambda text: print(f"viewer: {text}", file=sys.stderr, flush=True))
+    finally:
+        close_recording(rec)
+        if viewer is not None:
+            viewer.stop()
+    where = f" -> {save}" if save is not None else ""
+    print(f"viewer: logged {counts.frames} frames ({counts.frames_dropped} dropped while busy), "
+          f"{counts.detections} detection messages, {counts.egomotion} egomotion messages"
+          + (f", {counts.undecodable} undecodable" if counts.undecodable else "") + where, file=sys.stderr, flush=True)
     return 0
 
 

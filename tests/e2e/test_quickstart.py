@@ -53,3 +53,8 @@ def test_main_job_runs_every_step(tmp_path):
     received, processed, dropped, malformed = (int(numbers[k]) for k in ("received", "processed", "dropped", "malformed"))
     assert received == 16 and processed >= 2 and malformed == 0
     assert received == processed + dropped + malformed
+    # ... and, with the viz extra, `stream view` recorded one detections entry per processed frame
+    import importlib.util
+    if importlib.util.find_spec("rerun") is not None:
+        assert (out / "stream.rrd").stat().st_size > 100_000
+        assert f"{processed} detection messages" in next(l for l in log.splitlines() if "viewer: logged" in l)

@@ -18,15 +18,18 @@ import argparse
 import numpy as np
 import torch
 
+from core.data.ground_truth import gt_occupancy
 from core.models.detector_boxes import aabb_to_boxes, boxes_to_aabb
 from core.pipeline.detect import detect, detections_per_item
 from core.tasks.detector import gt_boxes_ref
 from services.cli.argtypes import positive_int
-from services.cli.eval import iter_records, load_bundle_for_eval, resolve_device
+from services.cli.eval import (add_rerun_option, check_rerun_option, iter_records, load_bundle_for_eval,
+                               open_rerun_option, print_rerun_option, resolve_device)
 from services.cli.eval_detection import DEFAULT_IOUS, _thresholds, run_detection_files_eval, threshold_key
 from services.cli.eval_tasks.boxes_report import MethodAP, bev_boxes_figure, pr_figure
 from services.cli.eval_tasks.common import record_batch
 from services.reports import Report
+from services.viz.rerun_paths import FRAME
 
 NEEDS = ("mapper", "detector")
 CLASS = "object"  # the detector is class-agnostic (one anchor class: car-sized objects)
@@ -48,6 +51,7 @@ def register(kinds) -> None:
     data.add_argument("--max-records", type=positive_int, default=None, metavar="N",
                       help="evaluate only the first N records (default: all)")
     data.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (default: auto)")
+    add_rerun_option(data)
     parser.add_argument("--out", required=True, metavar="REPORT_DIR", help="where the report goes (created)")
     parser.add_argument("--iou", nargs="+", type=float, default=[], metavar="T",
                         help=f"IoU thresholds besides {', '.join(map(str, DEFAULT_IOUS))}")
@@ -62,6 +66,8 @@ def run(args: argparse.Namespace) -> int:
     if files_mode and data_mode:
         raise CliError("give either --pred/--gt (label files) or --data/--bundle (a dataset), not both")
     if files_mode:
+        if args.rerun is not None:
+            raise CliError("--rerun records the bundle's detections on a dataset: give --data/--bundle, not --pred/--gt")
         for flag, value in (("--pred", args.pred), ("--gt", args.gt)):
             if value is None:
                 raise CliError(f"label-file mode needs {flag} DIR")
@@ -80,14 +86,23 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("give --pred DIR --gt DIR (label files) or --data DIR --bundle B (a dataset)")
     if args.classes:
         raise CliError("--classes applies to label files only (the bundle's detector is class-agnostic)")
+    from services.viz.rerun_eval import close_eval_recorder
+
+    check_rerun_option(args)
     device = resolve_device(args.device)
     bundle = load_bundle_for_eval(args.bundle, device, NEEDS, data_dir=args.data)
-    report = build_report(bundle, iter_records(args.data, args.max_records), device=device, ious=args.iou,
-                          bundle_path=args.bundle, data_path=args.data, max_records=args.max_records)
+    recorder = open_rerun_option(args, bundle, timeline=FRAME, kind="detection")
+    try:
+        report = build_report(bundle, iter_records(args.data, args.max_records), device=device, ious=args.iou,
+                              bundle_path=args.bundle, data_path=args.data, max_records=args.max_records,
+                              recorder=recorder)
+    finally:
+        close_eval_recorder(recorder)
     out = report.write(args.out)
     e = report.metrics["detection"][CLASS]
     print(f"detection: {report.settings['frames']} frames, {e['num_gt']} gt boxes, {e['num_pred']} detections, "
           + ", ".join(f"AP3D@{k} {_fmt(v)}" for k, v in e["ap3d"].items()) + f" -> {out / 'report.md'}")
+    print_rerun_option(args, recorder)
     return 0
 
 
@@ -95,12 +110,14 @@ def _fmt(v) -> str:
     return "n/a" if v is None else f"{v:.3f}"
 
 
-def evaluate(bundle, records, *, device, thresholds) -> dict:
-    """Detector AP over every (record, time step): {"ap": MethodAP, "frames", "example"}."""
+def evaluate(bundle, records, *, device, thresholds, recorder=None) -> dict:
+    """Detector AP over every (record, time step): {"ap": MethodAP, "frames", "example"}. `recorder`
+    (services.viz.rerun_eval.EvalRecorder) gets every (record, t): the observed occupancy, the
+    ground-truth boxes scored against and the detections with their scores."""
     grid = bundle.preset.grid
     ap = MethodAP(thresholds)
     frames, example = 0, None
-    for record in records:
+    for record_index, record in enumerate(records):
         batch = record_batch(record, device)
         batch.update({k: torch.as_tensor(np.asarray(record[k]))[None].to(device) for k in ("boxes", "box_valid")})
         batch["boxes"] = batch["boxes"].float()
@@ -113,14 +130,20 @@ def evaluate(bundle, records, *, device, thresholds) -> dict:
             ap.add_frame(pred["boxes"].double().cpu().numpy(), pred["scores"].double().cpu().numpy(),
                          gt.double().cpu().numpy())
             frames += 1
+            if recorder is not None:
+                recorder.log_entry(record=record, record_index=record_index, t0=t,
+                                   occupancy=gt_occupancy(record, t, grid)[0].numpy() > 0.5,
+                                   boxes_true=gt.cpu().numpy(), boxes_pred=pred["boxes"].float().cpu().numpy(),
+                                   scores_pred=pred["scores"].float().cpu().numpy())
             if example is None:
                 example = (gt.cpu().numpy(), pred["boxes"][:10].cpu().numpy())
     return {"ap": ap, "frames": frames, "example": example}
 
 
-def build_report(bundle, records, *, device, ious=(), bundle_path=None, data_path=None, max_records=None) -> Report:
+def build_report(bundle, records, *, device, ious=(), bundle_path=None, data_path=None, max_records=None,
+                 recorder=None) -> Report:
     thresholds = _thresholds(ious)
-    result = evaluate(bundle, records, device=device, thresholds=thresholds)
+    result = evaluate(bundle, records, device=device, thresholds=thresholds, recorder=recorder)
     summary = result["ap"].summary()
     report = Report(kind="detection", title="3D object detection evaluation", bundle=bundle_path, data=data_path,
                     settings={"max_records": max_records, "frames": result["frames"], "device": str(device),

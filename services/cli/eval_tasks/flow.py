@@ -16,10 +16,12 @@ import torch
 from core.data.ground_truth import gt_flow, gt_occupancy
 from core.eval import flow_metrics as fm
 from core.pipeline.flow import estimate_flow
-from services.cli.eval import add_eval_parser, iter_records, load_bundle_for_eval, resolve_device
+from services.cli.eval import (add_eval_parser, add_rerun_option, check_rerun_option, iter_records,
+                               load_bundle_for_eval, open_rerun_option, print_rerun_option, resolve_device)
 from services.cli.eval_tasks.common import pair_inputs, record_batch
 from services.cli.eval_tasks.plots import image_grid
 from services.reports import Report
+from services.viz.rerun_paths import PAIR
 
 ROWS = ("model", "model_raw", "zero_motion")
 
@@ -28,15 +30,18 @@ def register(kinds) -> None:
     parser = add_eval_parser(kinds, "flow", help="3D flow EPE (full/static/moving) vs the zero-motion baseline")
     parser.add_argument("--moving-threshold", type=float, default=1e-3,
                         help="ground-truth flow norm (voxels) above which a voxel counts as moving")
+    add_rerun_option(parser)
     parser.set_defaults(func=run)
 
 
-def evaluate(bundle, records, *, device, moving_threshold: float) -> dict:
+def evaluate(bundle, records, *, device, moving_threshold: float, recorder=None) -> dict:
+    """Summed errors per row over every consecutive pair; `recorder` (services.viz.rerun_eval.EvalRecorder)
+    gets every pair: the labelled occupied voxels, the true flow and the model's (occupancy-masked) flow."""
     grid = bundle.preset.grid
     sums = {row: {} for row in ROWS}
     example = None
     pairs = 0
-    for record in records:
+    for record_index, record in enumerate(records):
         batch = record_batch(record, device)
         T = batch["rgb"].shape[1]
         for t in range(T - 1):
@@ -48,6 +53,10 @@ def evaluate(bundle, records, *, device, moving_threshold: float) -> dict:
                 sums[row] = fm.add_sums(sums[row], fm.flow_error_sums(
                     pred.float(), gt, occupied=occupied, moving_threshold=moving_threshold))
             pairs += 1
+            if recorder is not None:
+                recorder.log_entry(record=record, record_index=record_index, t0=t, t1=t + 1,
+                                   occupancy=occupied[0, 0].cpu().numpy(), flow_true=gt[0].cpu().numpy(),
+                                   flow_pred=out["flow"][0].float().cpu().numpy())
             if example is None or (gt.norm(dim=1) > moving_threshold).sum() > (example["gt"].norm(dim=0) > moving_threshold).sum():
                 example = {"gt": gt[0].cpu(), "pred": out["flow"][0].float().cpu()}
     if pairs == 0:
@@ -62,10 +71,17 @@ def _bev(flow: torch.Tensor) -> np.ndarray:
 
 
 def run(args) -> int:
+    from services.viz.rerun_eval import close_eval_recorder
+
+    check_rerun_option(args)
     device = resolve_device(args.device)
     bundle = load_bundle_for_eval(args.bundle, device, ("mapper", "flow"), data_dir=args.data)
-    result = evaluate(bundle, iter_records(args.data, args.max_records), device=device,
-                      moving_threshold=args.moving_threshold)
+    recorder = open_rerun_option(args, bundle, timeline=PAIR, kind="flow")
+    try:
+        result = evaluate(bundle, iter_records(args.data, args.max_records), device=device,
+                          moving_threshold=args.moving_threshold, recorder=recorder)
+    finally:
+        close_eval_recorder(recorder)
     scores = result["scores"]
     report = Report(kind="flow", title="3D imagination flow evaluation", bundle=args.bundle, data=args.data,
                     settings={"max_records": args.max_records, "pairs": result["pairs"],
@@ -94,4 +110,5 @@ def run(args) -> int:
     m = scores["model"]
     print(f"flow: {result['pairs']} pairs, L1 EPE full {m['epe_l1_full']:.3f} static {m['epe_l1_static']:.3f} "
           f"moving {m['epe_l1_moving']:.3f} (zero-motion moving {z['epe_l1_moving']:.3f}) -> {out / 'report.md'}")
+    print_rerun_option(args, recorder)
     return 0

@@ -32,11 +32,13 @@ from core.moving.amodal import SizePrior, estimate_size_prior
 from core.moving.ground import DEFAULT_MARGIN_VOXELS, fit_ground_plane
 from core.pipeline.moving import DEFAULT_DT, OCCUPANCY_SOURCES, MovingObjectsConfig, boxes_from_flow, moving_objects
 from services.cli.argtypes import non_negative_float, positive_float, positive_int
-from services.cli.eval import add_eval_parser, iter_records, load_bundle_for_eval, resolve_device
+from services.cli.eval import (add_eval_parser, add_rerun_option, check_rerun_option, iter_records,
+                               load_bundle_for_eval, open_rerun_option, print_rerun_option, resolve_device)
 from services.cli.eval_detection import threshold_key
 from services.cli.eval_tasks.boxes_report import MethodAP, bev_boxes_figure, pr_figure
 from services.cli.eval_tasks.common import pair_inputs, record_batch
 from services.reports import Report
+from services.viz.rerun_paths import PAIR
 
 NEEDS = ("mapper", "flow")
 IOUS = (0.25, 0.33, 0.5)
@@ -72,6 +74,7 @@ def register(kinds) -> None:
                         help="amodal boxes: 'auto' (default) estimates each method's object size from its own "
                              "components over these pairs (no labels), 'none' keeps the visible boxes, three "
                              "numbers give length, width and height in metres")
+    add_rerun_option(parser)
     parser.set_defaults(func=run)
 
 
@@ -102,9 +105,9 @@ def _oracle(record, t, grid, config: MovingObjectsConfig) -> dict:
     ground = [fit_ground_plane(xyz[valid].double().numpy()) if config.ground_margin is not None else None]
     ref_T_cam = torch.linalg.inv(torch.as_tensor(record["world_T_ref"][t], dtype=torch.float64)) @ \
         torch.as_tensor(record["world_T_cam"][t], dtype=torch.float64)        # V×4×4
-    out = boxes_from_flow(true_flow, gt_occupancy(record, t, grid)[None], grid, config, ground=ground,
-                          viewpoints=ref_T_cam[None, :, :3, 3].float())
-    return {**out, "flow": true_flow}
+    observed = gt_occupancy(record, t, grid)[None]                              # 1×1×Z×Y×X
+    out = boxes_from_flow(true_flow, observed, grid, config, ground=ground, viewpoints=ref_T_cam[None, :, :3, 3].float())
+    return {**out, "flow": true_flow, "observed": observed}
 
 
 def method_configs(bundle, records, *, device, config: MovingObjectsConfig, size_prior) -> dict:
@@ -129,9 +132,11 @@ def method_configs(bundle, records, *, device, config: MovingObjectsConfig, size
 
 
 def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_px: float, min_pixels: int,
-             min_points: int, baselines: bool = True, size_prior="auto") -> dict:
+             min_points: int, baselines: bool = True, size_prior="auto", recorder=None) -> dict:
     """AP accumulators per camera setting × method, pair counts, the size prior each 3D method used and
-    the richest example for a plot. size_prior: "auto", None or a SizePrior (method_configs)."""
+    the richest example for a plot. size_prior: "auto", None or a SizePrior (method_configs).
+    `recorder` (services.viz.rerun_eval.EvalRecorder) gets every pair: observed occupancy, the true and
+    the model's flow, the ground-truth moving boxes and the model's boxes with scores."""
     grid = bundle.preset.grid
     records = list(records)
     configs = method_configs(bundle, records, device=device, config=config, size_prior=size_prior)
@@ -140,7 +145,7 @@ def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_
     pairs = {cam: 0 for cam in CAMERAS}
     stabilised_with = "egomotion (bundle)" if "egomotion" in bundle.modules else "poses (records)"
     example = None
-    for record in records:
+    for record_index, record in enumerate(records):
         batch = record_batch(record, device)
         for t in range(batch["rgb"].shape[1] - 1):
             cam = camera_setting(record, t)
@@ -149,7 +154,7 @@ def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_
             out = moving_objects(bundle, **pair_inputs(batch, t, t + 1), config=configs[MODEL])
             found[MODEL] = _np(out["boxes"][0], out["scores"][0], out["valid"][0])
             oracle = _oracle(record, t, grid, configs[ORACLE_3D])
-            true_flow = oracle["flow"]
+            true_flow, observed = oracle["flow"], oracle["observed"]
             found[ORACLE_3D] = _np(oracle["boxes"][0], oracle["scores"][0], oracle["valid"][0])
             if baselines:
                 for name, (source, stabilise) in BASELINES.items():
@@ -159,6 +164,11 @@ def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_
             for name, (boxes, scores) in found.items():
                 acc[cam][name].add_frame(boxes, scores, gt)
             pairs[cam] += 1
+            if recorder is not None:
+                recorder.log_entry(record=record, record_index=record_index, t0=t, t1=t + 1,
+                                   occupancy=observed[0, 0].numpy() > 0.5, flow_true=true_flow[0].numpy(),
+                                   flow_pred=out["flow"][0].float().cpu().numpy(), boxes_true=gt,
+                                   boxes_pred=found[MODEL][0], scores_pred=found[MODEL][1], note=f"{cam} camera")
             if example is None or len(gt) > len(example["gt"]):
                 bev = out["flow"][0].norm(dim=0).amax(dim=1).cpu().numpy()      # Z×X voxels
                 example = {"gt": gt, "bev": bev, "camera": cam,
@@ -174,9 +184,10 @@ def evaluate(bundle, records, *, device, config: MovingObjectsConfig, threshold_
 
 def build_report(bundle, records, *, device, config: MovingObjectsConfig, threshold_px: float = 1.0,
                  min_pixels: int = 15, min_points: int = 10, baselines: bool = True, bundle_path=None,
-                 data_path=None, max_records=None, size_prior="auto") -> Report:
+                 data_path=None, max_records=None, size_prior="auto", recorder=None) -> Report:
     result = evaluate(bundle, records, device=device, config=config, threshold_px=threshold_px,
-                      min_pixels=min_pixels, min_points=min_points, baselines=baselines, size_prior=size_prior)
+                      min_pixels=min_pixels, min_points=min_points, baselines=baselines, size_prior=size_prior,
+                      recorder=recorder)
     keys = [threshold_key(t) for t in IOUS]
     report = Report(kind="moving", title="Moving-object detection evaluation", bundle=bundle_path, data=data_path,
                     settings={"max_records": max_records, "pairs_static_camera": result["pairs"]["static"],
@@ -232,15 +243,22 @@ def build_report(bundle, records, *, device, config: MovingObjectsConfig, thresh
 
 
 def run(args) -> int:
+    from services.viz.rerun_eval import close_eval_recorder
+
+    check_rerun_option(args)
     device = resolve_device(args.device)
     bundle = load_bundle_for_eval(args.bundle, device, NEEDS, data_dir=args.data)
     config = MovingObjectsConfig(dt=args.dt, min_speed=args.min_speed, min_voxels=args.min_voxels,
                                  occupancy=args.occupancy, ground_margin=None if args.no_ground else DEFAULT_MARGIN_VOXELS)
-    report = build_report(bundle, iter_records(args.data, args.max_records), device=device, config=config,
-                          threshold_px=args.flow_threshold_px, min_pixels=args.min_pixels,
-                          min_points=args.min_points, baselines=not args.no_baselines, bundle_path=args.bundle,
-                          data_path=args.data, max_records=args.max_records,
-                          size_prior=parse_size_prior(args.size_prior))
+    recorder = open_rerun_option(args, bundle, timeline=PAIR, kind="moving")
+    try:
+        report = build_report(bundle, iter_records(args.data, args.max_records), device=device, config=config,
+                              threshold_px=args.flow_threshold_px, min_pixels=args.min_pixels,
+                              min_points=args.min_points, baselines=not args.no_baselines, bundle_path=args.bundle,
+                              data_path=args.data, max_records=args.max_records,
+                              size_prior=parse_size_prior(args.size_prior), recorder=recorder)
+    finally:
+        close_eval_recorder(recorder)
     out = report.write(args.out)
     key = threshold_key(PRIMARY_IOU)
     for cam in CAMERAS:
@@ -250,6 +268,7 @@ def run(args) -> int:
         print(f"moving ({cam} camera, {report.metrics['moving_pairs'][cam]} pairs, {per[MODEL]['num_gt']} gt): "
               + ", ".join(f"{m} AP3D@{key} {_fmt(per[m]['ap3d'][key])}" for m in per))
     print(f"-> {out / 'report.md'}")
+    print_rerun_option(args, recorder)
     return 0
 
 
