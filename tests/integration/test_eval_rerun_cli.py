@@ -20,6 +20,7 @@ import services.cli.main as cli_main  # noqa: E402
 from core.bundle import load_bundle, save_bundle  # noqa: E402
 from core.data.ground_truth import gt_flow, gt_occupancy  # noqa: E402
 from core.data.shards import write_dataset  # noqa: E402
+from core.moving.amodal import SizePrior  # noqa: E402
 from core.eval.moving_protocol import gt_moving_boxes  # noqa: E402
 from core.models.detector_boxes import aabb_to_boxes, boxes_to_aabb  # noqa: E402
 from core.moving.ground import DEFAULT_MARGIN_VOXELS  # noqa: E402
@@ -120,8 +121,9 @@ def _check_occupancy(rec, timeline, entry, occupied):
 
 def test_eval_moving_recording_holds_the_evaluated_boxes_and_flow(capsys, setup):
     root, records, bundle = setup
-    rec = _eval(capsys, root, "moving", "--no-baselines")
-    config = MovingObjectsConfig(ground_margin=DEFAULT_MARGIN_VOXELS)  # the CLI's defaults
+    rec = _eval(capsys, root, "moving", "--no-baselines", "--size-prior", "4.0", "2.0", "1.5")
+    # the CLI's defaults, with the amodal boxes' prior given on the command line
+    config = MovingObjectsConfig(ground_margin=DEFAULT_MARGIN_VOXELS, size_prior=SizePrior.from_size(4.0, 2.0, 1.5))
     entry, found, true = 0, 0, 0
     with torch.inference_mode():
         for r, record in enumerate(records):
