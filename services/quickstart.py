@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
         serve_and_call(bundle, data)
     recording = None
     if not args.skip_stream:
-        recording = stream(bundle, out)
+        recording = stream(bundle, out, size_prior=model_size_prior(reports / "all"))
 
     print(f"\nquickstart finished in {time.monotonic() - started:.0f} s; everything is under {out}/:"
           f"\n  {out}/preview.png, {runs}/*/metrics.jsonl, {bundle}, {reports}/all/report.md"
@@ -146,14 +146,29 @@ def rerun_installed() -> bool:
     return importlib.util.find_spec("rerun") is not None
 
 
-def stream(bundle: Path, out_dir: Path) -> Path | None:
+def model_size_prior(eval_all_dir: Path) -> list[float] | None:
+    """[length, width, height] (metres) of the amodal size prior that step 4's `eval moving` estimated,
+    without labels, from the model's own moving components on the validation pairs; None if it found none."""
+    import json
+
+    try:
+        metrics = json.loads((eval_all_dir / "metrics.json").read_text())["metrics"]
+        prior = metrics["moving"]["size_priors"]["3d (model)"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return None if prior is None else [round(prior[k], 2) for k in ("length", "width", "height")]
+
+
+def stream(bundle: Path, out_dir: Path, *, size_prior: list[float] | None = None) -> Path | None:
     """6. Bridge + simulated camera + listener over zenoh on loopback (peer mode), and with the viz
-    extra a `stream view` recording everything to OUT/stream.rrd. Returns that recording's path."""
+    extra a `stream view` recording everything to OUT/stream.rrd. Returns that recording's path.
+    size_prior: the bridge's amodal box size (from step 4's evaluation), or None for visible boxes."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     frames = 16
     recording = out_dir / "stream.rrd" if rerun_installed() else None
     bridge_cmd = ["stream", "bridge", "--bundle", str(bundle), "--listen", endpoint, "--duration", "300",
-                  "--bridge-id", "quickstart", "--status-every", "0"]
+                  "--bridge-id", "quickstart", "--status-every", "0",
+                  *(["--size-prior", *map(str, size_prior)] if size_prior else [])]
     listen_cmd = ["stream", "listen", "--camera-id", "cam0", "--connect", endpoint]
     view_cmd = ["stream", "view", "--camera-id", "cam0", "--connect", endpoint, "--save", str(recording)]
     camera_cmd = ["stream", "camera", "--camera-id", "cam0", "--synthetic", "--rate", "5", "--frames", str(frames),

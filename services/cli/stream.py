@@ -41,6 +41,10 @@ def register(subparsers) -> None:
                              "camera, listener and zenoh need a core; on a loaded 2-core host two threads "
                              "spin against each other and run ~10× slower)")
     bridge.add_argument("--min-score", type=float, default=0.0, help="drop boxes scored below this")
+    bridge.add_argument("--size-prior", type=positive_float, nargs=3, default=None, metavar=("L", "W", "H"),
+                        help="amodal boxes of this object size in metres (length, width, height): oversized "
+                             "components are split or dropped, partial ones completed (default: visible boxes); "
+                             "`n3dmap eval moving` estimates it without labels and prints it in its report")
     bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S",
                         help="seconds between consecutive frames of a camera (its capture interval; default "
                              "%(default)s, the synthetic world's step). A pair that spans dropped frames "
@@ -138,7 +142,10 @@ def _run_bridge(args: argparse.Namespace) -> int:
     runtime = Runtime(RuntimeConfig(bundle_dir=args.bundle, device=args.device,
                                     num_threads=args.threads or default_bridge_threads()))
     try:
-        processor = RuntimeProcessor(runtime, min_score=args.min_score, frame_dt=args.frame_dt)
+        from core.moving.amodal import SizePrior
+
+        prior = None if args.size_prior is None else SizePrior.from_size(*args.size_prior)
+        processor = RuntimeProcessor(runtime, min_score=args.min_score, frame_dt=args.frame_dt, size_prior=prior)
     except ValueError as e:
         raise CliError(str(e)) from None
     stop = _stop_event()

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from google.protobuf.message import DecodeError
 
+from core.moving.amodal import SizePrior
 from core.pipeline.moving import DEFAULT_DT, MovingObjectsConfig
 from core.pipeline.stream_step import FrameEncoding, encode_previous, moving_step
 from n3dmap.v1 import inference_pb2, types_pb2
@@ -65,7 +66,8 @@ class RuntimeProcessor:
     """Decode `Frame` payloads and run egomotion + moving objects on the runtime's bundle."""
 
     def __init__(self, runtime: Runtime, *, min_score: float = 0.0, reuse: bool = True,
-                 frame_dt: float = DEFAULT_DT) -> None:
+                 frame_dt: float = DEFAULT_DT, size_prior: SizePrior | None = None) -> None:
+        """size_prior: amodal boxes of this object size (core.moving.amodal), or None for visible boxes."""
         missing = [r for r in ("moving_objects",) if r not in runtime.routes]
         if missing:
             raise ValueError(f"bundle {runtime.version} cannot serve the stream bridge: it lacks the modules for "
@@ -77,6 +79,7 @@ class RuntimeProcessor:
             raise ValueError(f"frame_dt must be positive seconds, got {frame_dt}")
         self.frame_dt = float(frame_dt)  # seconds between consecutive sequence numbers of a camera
         self.reuse = reuse  # False: encode the previous frame again every step (for comparisons)
+        self.size_prior = size_prior
         self._stages: dict[str, deque] = {}
         self._stages_lock = threading.Lock()
 
@@ -137,7 +140,7 @@ class RuntimeProcessor:
         # After drops the pair spans several frame intervals: velocities and the speed threshold use
         # the real span, not one interval (sequence numbers only grow here: duplicates and
         # out-of-order frames never reach process, and a publisher restart resets the state).
-        config = MovingObjectsConfig(dt=self.pair_dt(state.previous.sequence, frame.sequence))
+        config = MovingObjectsConfig(dt=self.pair_dt(state.previous.sequence, frame.sequence), size_prior=self.size_prior)
         with torch.inference_mode():
             t0, t1 = views_tensors(views0, device), views_tensors(views1, device)
             out = moving_step(bundle, **{f"{k}0": v for k, v in t0.items()}, **{f"{k}1": v for k, v in t1.items()},

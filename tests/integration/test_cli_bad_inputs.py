@@ -67,6 +67,12 @@ CASES = [
           slow=True),
     _case("bundle-truncated-weights", "bundle info {truncated_bundle}", "weights.safetensors"),
     _case("bench-seeds-0", "bench paper --preset tiny --out {out}/b --seeds 0", "--seeds"),
+    _case("bench-parallel-seeds-0", "bench paper --preset tiny --out {out}/b --parallel-seeds 0", "--parallel-seeds"),
+    # amodal boxes: a size prior is three positive lengths, or auto / none for eval moving
+    _case("bridge-size-prior-two", "stream bridge --bundle {bundle} --size-prior 4 2", "--size-prior"),
+    _case("bridge-size-prior-negative", "stream bridge --bundle {bundle} --size-prior 4 2 -1", "--size-prior"),
+    _case("eval-moving-size-prior-word", "eval moving --data {data} --bundle {bundle} --out {out}/e5 --device cpu "
+          "--size-prior big", "--size-prior"),
     # eval: a dataset of another preset than the bundle's was evaluated (exit 0); --per-example 0 was a
     # reshape traceback; --query-views 9 silently meant view 0 (9 % V)
     _case("eval-wrong-preset", "eval occupancy --data {small_data} --bundle {bundle} --out {out}/e1 --device cpu",

@@ -245,6 +245,7 @@ def build_report(bundle, records, *, device, config: MovingObjectsConfig, thresh
 def run(args) -> int:
     from services.viz.rerun_eval import close_eval_recorder
 
+    size_prior = parse_size_prior(args.size_prior)   # a bad option is reported before any work
     check_rerun_option(args)
     device = resolve_device(args.device)
     bundle = load_bundle_for_eval(args.bundle, device, NEEDS, data_dir=args.data)
@@ -256,7 +257,7 @@ def run(args) -> int:
                               threshold_px=args.flow_threshold_px, min_pixels=args.min_pixels,
                               min_points=args.min_points, baselines=not args.no_baselines, bundle_path=args.bundle,
                               data_path=args.data, max_records=args.max_records,
-                              size_prior=parse_size_prior(args.size_prior), recorder=recorder)
+                              size_prior=size_prior, recorder=recorder)
     finally:
         close_eval_recorder(recorder)
     out = report.write(args.out)
