@@ -8,6 +8,12 @@ inference (the services, the stream bridge) of every 3×3×3 conv went to `slow_
 and autograd works through `torch.mkldnn_convolution`. 1×1×1 kernels keep PyTorch's choice (there
 its native path is the faster one single-threaded). Same parameters and state dict as nn.Conv3d, so
 bundles load unchanged.
+
+The direct call is for eager float32 only. Under autocast the convolution goes through F.conv3d,
+which autocast casts to bfloat16 — and PyTorch sends every CPU bf16 convolution to oneDNN whatever its
+size, so the batch-1 speed-up holds there too (calling torch.mkldnn_convolution under autocast kept the
+convs in float32: autocast does not cover that op). Under torch.compile F.conv3d is what Inductor
+lowers (it cannot trace torch.mkldnn_convolution: "itensor_view_from_dense expects CPU tensor input").
 """
 
 from __future__ import annotations
@@ -25,8 +31,10 @@ class Conv3d(nn.Conv3d):
     """nn.Conv3d (B×Cin×Z×Y×X -> B×Cout×Z'×Y'×X'), oneDNN on CPU float32 for kernels larger than 1³."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if (self.padding_mode == "zeros" and not isinstance(self.padding, str)
-                and self.kernel_size != (1, 1, 1) and _onednn_usable(x)):
+        # is_compiling first: Dynamo may not trace the oneDNN availability checks behind it.
+        if (not torch.compiler.is_compiling() and self.padding_mode == "zeros" and not isinstance(self.padding, str)
+                and self.kernel_size != (1, 1, 1) and not torch.is_autocast_enabled(x.device.type)
+                and _onednn_usable(x)):
             return torch.mkldnn_convolution(x, self.weight, self.bias, self.padding, self.stride, self.dilation,
                                             self.groups)  # B×Cout×Z'×Y'×X'
         return super().forward(x)

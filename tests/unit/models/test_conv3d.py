@@ -29,3 +29,31 @@ def test_other_dtypes_fall_back_to_torch():
     conv = Conv3d(2, 3, 3, padding=1).double()
     x = torch.randn(1, 2, 4, 4, 4, dtype=torch.float64)
     torch.testing.assert_close(conv(x), nn.functional.conv3d(x, conv.weight, conv.bias, padding=1))
+
+
+def test_autocast_runs_the_convolution_in_bfloat16_like_torch():
+    """Under CPU autocast the conv goes through F.conv3d (autocast does not cover torch.mkldnn_convolution,
+    which kept convs in float32): bf16 out, equal to nn.Conv3d under the same autocast."""
+    torch.manual_seed(0)
+    fast = Conv3d(5, 6, 3, padding=1)
+    slow = nn.Conv3d(5, 6, 3, padding=1)
+    slow.load_state_dict(fast.state_dict())
+    x = torch.randn(1, 5, 6, 4, 6)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        ya, yb = fast(x), slow(x)
+    assert ya.dtype == torch.bfloat16
+    torch.testing.assert_close(ya, yb)
+    torch.testing.assert_close(ya.float(), fast(x), rtol=0.05, atol=0.05)   # bf16 keeps ~3 significant digits
+
+
+def test_torch_compile_traces_the_module():
+    """torch.compile could not trace torch.mkldnn_convolution ("itensor_view_from_dense expects CPU tensor
+    input"); the module now traces (aot_eager: the graph capture and autograd, without a C++ build)."""
+    torch.manual_seed(0)
+    conv = Conv3d(5, 6, 3, padding=1)
+    x = torch.randn(1, 5, 6, 4, 6, requires_grad=True)
+    compiled = torch.compile(conv, backend="aot_eager", fullgraph=True)
+    y = compiled(x)
+    torch.testing.assert_close(y, nn.functional.conv3d(x, conv.weight, conv.bias, padding=1), rtol=1e-4, atol=1e-4)
+    y.sum().backward()
+    assert x.grad is not None and conv.weight.grad is not None
