@@ -53,7 +53,8 @@ def views_from_json(frames, field: str) -> Views:
 
 def views_from_npz(arrays: dict[str, np.ndarray], suffix: str = "") -> Views:
     """`.npz` body -> Views. Keys: rgb{s} V×H×W×3 uint8, depth{s} V×H×W (float32 m | uint16 mm),
-    pix_T_cam{s} V×4×4, optional world_T_cam{s} V×4×4; `s` is "" for one instant, "0"/"1" for pairs."""
+    pix_T_cam{s} V×4×4, world_T_cam{s} V×4×4 (optional for one view); `s` is "" for one instant, "0"/"1"
+    for pairs."""
     names = {k: f"{k}{suffix}" for k in ("rgb", "depth", "pix_T_cam", "world_T_cam")}
     for k in ("rgb", "depth", "pix_T_cam"):
         if names[k] not in arrays:
@@ -63,6 +64,9 @@ def views_from_npz(arrays: dict[str, np.ndarray], suffix: str = "") -> Views:
     if rgb.ndim != 4:
         raise InvalidInput(names["rgb"], f"must have shape V×H×W×3, got {list(rgb.shape)}")
     V = rgb.shape[0]
+    if pose is None and V > 1:
+        raise InvalidInput(names["world_T_cam"], f"missing: each of the {V} views of one instant needs its camera "
+                                                 "pose to be fused with the others")
     for name, arr, ndim in ((names["depth"], depth, 3), (names["pix_T_cam"], K, 3), (names["world_T_cam"], pose, 3)):
         if arr is not None and (arr.ndim != ndim or arr.shape[0] != V):
             raise InvalidInput(name, f"must have {ndim} dims with V={V} first, got {list(arr.shape)}")
