@@ -112,6 +112,7 @@ class RestClient:
                f"pix_T_cam{suffix}": np.asarray(f.pix_T_cam, np.float32)}
         if f.world_T_cam is not None:
             out[f"world_T_cam{suffix}"] = np.asarray(f.world_T_cam, np.float32)
+        out[f"timestamp{suffix}"], out[f"sequence{suffix}"] = np.float64(f.timestamp), np.uint64(f.sequence)
         return out
 
     def _post(self, path: str, *, json_body: dict, npz_arrays: dict, params: dict | None = None,
