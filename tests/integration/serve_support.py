@@ -66,7 +66,8 @@ def intrinsics(H: int, W: int) -> np.ndarray:
 
 
 def sample_frames(preset_name: str = "tiny", *, views: int = 2, seed: int = 0):
-    """client.Frames of a plausible scene: ground plane depth, random colours, cameras turned about Y."""
+    """client.Frames of a plausible scene: ground plane depth, random colours, cameras turned about Y; the
+    frame of `seed` is sequence `seed`, stamped 12.5 + 0.2·seed s."""
     from core.presets import get_preset
     from services.inference.client import Frames
 
@@ -85,7 +86,8 @@ def sample_frames(preset_name: str = "tiny", *, views: int = 2, seed: int = 0):
         poses.append(T)
     return Frames(rgb=rng.integers(0, 256, (views, H, W, 3), dtype=np.uint8),
                   depth=np.stack([depth] * views), pix_T_cam=np.stack([K] * views),
-                  world_T_cam=np.stack(poses), camera_id="cam0", sequence=1, timestamp=12.5)
+                  world_T_cam=np.stack(poses), camera_id="cam0", sequence=seed,
+                  timestamp=12.5 + 0.2 * seed)  # a later seed is a later frame: pairs (seed, seed + k) advance
 
 
 class ServerProcess:
