@@ -10,23 +10,29 @@ from __future__ import annotations
 
 import torch
 
-from core.errors import BundleError, check_shape
+from core.errors import check_shape
 from core.geometry import se3
 from core.models.egomotion_inputs import fused_input_volume
+
+
+def ref_pose(world_T_cam: torch.Tensor, world_T_ref: torch.Tensor | None) -> torch.Tensor:
+    """world_T_ref B×4×4 of one instant: the given one, else the camera of view 0 (world_T_cam B×V×4×4)."""
+    return world_T_cam[:, 0] if world_T_ref is None else world_T_ref
 
 
 def rig_cam_T_ref(world_T_cam: torch.Tensor, world_T_ref: torch.Tensor | None) -> torch.Tensor:
     """world_T_cam B×V×4×4, world_T_ref B×4×4 or None (= view 0's camera) -> cam_T_ref B×V×4×4."""
     B, V = world_T_cam.shape[:2]
-    ref = world_T_cam[:, 0] if world_T_ref is None else world_T_ref
-    return se3.compose(se3.invert(world_T_cam), ref[:, None].expand(B, V, 4, 4))
+    return se3.compose(se3.invert(world_T_cam), ref_pose(world_T_cam, world_T_ref)[:, None].expand(B, V, 4, 4))
 
 
-def _module(bundle, name: str):
-    try:
-        return bundle.modules[name]
-    except KeyError:
-        raise BundleError(f"the bundle has no {name!r} module (it has {sorted(bundle.modules)})") from None
+def egomotion_from_volumes(net, vol0: torch.Tensor, vol1: torch.Tensor, cam_T_ref0: torch.Tensor,
+                           cam_T_ref1: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The egomotion module on two input volumes B×4×Z×Y×X (each instant in its own ref_t), with
+    cam_T_ref0/1 B×V×4×4 -> `ref0_T_ref1` B×4×4 and `cam0_T_cam1` B×4×4 (view 0's camera)."""
+    ref0_T_ref1 = net(vol0, vol1)["ref0_T_ref1"]  # B×4×4
+    cam0_T_cam1 = cam_T_ref0[:, 0] @ ref0_T_ref1 @ se3.invert(cam_T_ref1[:, 0])
+    return {"ref0_T_ref1": ref0_T_ref1, "cam0_T_cam1": cam0_T_cam1}
 
 
 @torch.no_grad()
@@ -37,7 +43,7 @@ def estimate_egomotion(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_
                        world_T_ref1: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """rgb0/1: B×V×3×H×W in [0,1]; depth0/1: B×V×H×W; pix_T_cam0/1, world_T_cam0/1: B×V×4×4;
     world_T_ref0/1: B×4×4 or None. Returns `ref0_T_ref1` B×4×4 and `cam0_T_cam1` B×4×4 (view 0)."""
-    net = _module(bundle, "egomotion")
+    net = bundle.require("egomotion")
     B, V = rgb0.shape[:2]
     for name, t in (("world_T_cam0", world_T_cam0), ("world_T_cam1", world_T_cam1)):
         check_shape(name, t, (B, V, 4, 4))
@@ -45,6 +51,4 @@ def estimate_egomotion(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_
     cam_T_ref1 = rig_cam_T_ref(world_T_cam1, world_T_ref1)
     vol0 = fused_input_volume(rgb0, depth0, pix_T_cam0, cam_T_ref0, net.grid)  # B×4×Z×Y×X
     vol1 = fused_input_volume(rgb1, depth1, pix_T_cam1, cam_T_ref1, net.grid)
-    ref0_T_ref1 = net(vol0, vol1)["ref0_T_ref1"]  # B×4×4
-    cam0_T_cam1 = cam_T_ref0[:, 0] @ ref0_T_ref1 @ se3.invert(cam_T_ref1[:, 0])
-    return {"ref0_T_ref1": ref0_T_ref1, "cam0_T_cam1": cam0_T_cam1}
+    return egomotion_from_volumes(net, vol0, vol1, cam_T_ref0, cam_T_ref1)

@@ -1,30 +1,33 @@
-"""3D imagination flow inference: two RGB-D rig frames -> flow in `ref0` (voxels, x y z, t -> t+1).
+"""3D imagination flow over a loaded bundle: two RGB-D rig frames -> flow in `ref0` (voxels, x y z, t -> t+1).
 
-Stabilisation (removing camera motion) re-unprojects frame 1 straight into ref0:
-- `stabilize="poses"` (default): with the given poses, cam_T_ref0 = inv(world_T_cam1) · world_T_ref0;
-- `stabilize="egomotion"`: with the bundle's egomotion estimate, cam_T_ref0 = cam_T_ref1 · inv(ref0_T_ref1).
-`ref_t` is `world_T_ref0/1` when given, else the camera of view 0 (see core.pipeline.egomotion).
-Flow of voxels the bundle's occupancy head calls free (P(occupied) < `occupancy_threshold`) is set to
-zero (the paper's test-time rule); without an occupancy module the raw flow is returned.
+`flow_step` is the one pair step every flow consumer runs: frame 0's own-frame work (a FrameEncoding,
+passed in when a stream kept it from the step before), the egomotion estimate when asked for or needed,
+stabilisation (core.pipeline.stabilise: frame 1 re-lifted straight into ref0 with the estimate, the poses
+or not at all), and the flow module. Flow of voxels the bundle's occupancy head calls free
+(P(occupied) < `occupancy_threshold`) is set to zero (the paper's test-time rule); without an occupancy
+module the raw flow is returned. `estimate_flow` is the step without a cache, and moving objects
+(core.pipeline.moving) add boxes to it. `ref_t` is `world_T_ref0/1` when given, else the camera of view 0
+(see core.pipeline.egomotion).
 """
 
 from __future__ import annotations
 
 import torch
 
-from core.errors import N3dmapError
 from core.geometry import se3
 from core.models.egomotion_inputs import fused_input_volume
-from core.pipeline.egomotion import _module, estimate_egomotion, rig_cam_T_ref
+from core.pipeline.egomotion import egomotion_from_volumes, rig_cam_T_ref
+from core.pipeline.encoding import FrameEncoding, Stopwatch, encode_previous
+from core.pipeline.stabilise import STABILISE, identity_like, poses_ref0_T_ref1, resolve_stabilise
 
-STABILIZE = ("poses", "egomotion")
+__all__ = ["STABILISE", "estimate_flow", "flow_pair", "flow_step"]
 
 
 def flow_pair(flow_net, grid, *, features, rgb, depth, pix_T_cam, cam_T_ref0, volumes=None):
     """What the flow module compares, both in ref0: the mapper features (f0, f1) B×F×Z×Y×X, or — for a
     module trained on input volumes (`flow_net.inputs == "volume"`) — the fused occupancy+RGB input
     volumes B×4×Z×Y×X, frame 1 re-lifted into ref0 exactly like its features. `volumes` passes volumes
-    already built (the stream step caches frame 0's)."""
+    already built (frame 0's egomotion input volume, on the same grid)."""
     if flow_net.inputs != "volume":
         return features
     if volumes is None:
@@ -35,37 +38,82 @@ def flow_pair(flow_net, grid, *, features, rgb, depth, pix_T_cam, cam_T_ref0, vo
 
 
 @torch.no_grad()
+def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: torch.Tensor,
+              world_T_cam0: torch.Tensor, rgb1: torch.Tensor, depth1: torch.Tensor, pix_T_cam1: torch.Tensor,
+              world_T_cam1: torch.Tensor, world_T_ref0: torch.Tensor | None = None,
+              world_T_ref1: torch.Tensor | None = None, previous: FrameEncoding | None = None,
+              stabilize: str | None = None, egomotion: bool = True, evidence: bool = False,
+              fit_ground: bool = True, occupancy_threshold: float = 0.5,
+              timings: dict[str, float] | None = None) -> dict:
+    """Inputs as `estimate_egomotion`, plus `previous`: frame 0's FrameEncoding kept from the step before
+    (or None); stabilize: "egomotion", "poses", "none" or None (egomotion when the bundle has it);
+    egomotion: also estimate cam0_T_cam1 when the bundle can (stabilize="egomotion" always does);
+    evidence / fit_ground: make frame 0's FrameEvidence (boxes need it).
+
+    Returns {"flow": B×3×Z×Y×X (free voxels zeroed), "flow_raw", "ref0_T_ref1": B×4×4 used to stabilise,
+    "cam0_T_cam1": B×4×4 (only when the egomotion module ran), "features1": B×F×Z×Y×X in ref0 (only for a
+    flow module that compares maps: one comparing input volumes never needs frame 1's map), "previous":
+    frame 0's FrameEncoding, "current": frame 1's (its egomotion volume only)}. `timings` receives seconds
+    per stage: ego_volume, map_previous, evidence_previous, egomotion, map_current, flow.
+    """
+    stabilize = resolve_stabilise(bundle, stabilize)
+    mapper, flow_net = bundle.require("mapper"), bundle.require("flow")
+    run_ego = "egomotion" in bundle.modules and (egomotion or stabilize == "egomotion")
+    enc0 = encode_previous(bundle, rgb=rgb0, depth=depth0, pix_T_cam=pix_T_cam0, world_T_cam=world_T_cam0,
+                           world_T_ref=world_T_ref0, cached=previous, ego_volume=run_ego, evidence=evidence,
+                           fit_ground=fit_ground, timings=timings)
+    watch = Stopwatch(timings)
+    cam_T_ref0 = rig_cam_T_ref(world_T_cam0, world_T_ref0)  # B×V×4×4
+    cam1_T_ref1 = rig_cam_T_ref(world_T_cam1, world_T_ref1)  # B×V×4×4
+    out: dict = {"previous": enc0, "current": FrameEncoding()}
+    if run_ego:
+        net = bundle.modules["egomotion"]
+        out["current"].ego_volume = fused_input_volume(rgb1, depth1, pix_T_cam1, cam1_T_ref1, net.grid)  # B×4×Z×Y×X
+        watch.lap("ego_volume")
+        ego = egomotion_from_volumes(net, enc0.ego_volume, out["current"].ego_volume, cam_T_ref0, cam1_T_ref1)
+        out["cam0_T_cam1"] = ego["cam0_T_cam1"]
+        watch.lap("egomotion")
+    if stabilize == "egomotion":
+        ref0_T_ref1 = ego["ref0_T_ref1"]
+    elif stabilize == "poses":
+        ref0_T_ref1 = poses_ref0_T_ref1(world_T_cam0, world_T_cam1, world_T_ref0, world_T_ref1)
+    else:
+        ref0_T_ref1 = identity_like(world_T_cam0)
+    cam1_T_ref0 = cam1_T_ref1 @ se3.invert(ref0_T_ref1)[:, None]  # B×V×4×4
+    f1 = None
+    if flow_net.inputs != "volume":  # a volume-input flow module never reads frame 1's map: skip the mapper
+        f1 = out["features1"] = mapper(rgb1, depth1, pix_T_cam1, cam1_T_ref0)  # B×F×Z×Y×X, stabilised into ref0
+        watch.lap("map_current")
+    # Frame 0's egomotion input volume is the flow's v0 too when the module compares input volumes.
+    same_grid = "egomotion" in bundle.modules and bundle.modules["egomotion"].grid == mapper.grid
+    raw = flow_net(*flow_pair(flow_net, mapper.grid, features=(enc0.features, f1), rgb=(rgb0, rgb1),
+                              depth=(depth0, depth1), pix_T_cam=(pix_T_cam0, pix_T_cam1),
+                              cam_T_ref0=(cam_T_ref0, cam1_T_ref0),
+                              volumes=(enc0.ego_volume if same_grid else None, None)))["flow"]  # B×3×Z×Y×X
+    flow = raw if enc0.occupancy is None else raw * (enc0.occupancy >= occupancy_threshold).to(raw.dtype)
+    watch.lap("flow")
+    out.update(flow=flow, flow_raw=raw, ref0_T_ref1=ref0_T_ref1)
+    return out
+
+
+@torch.no_grad()
 def estimate_flow(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: torch.Tensor,
                   world_T_cam0: torch.Tensor, rgb1: torch.Tensor, depth1: torch.Tensor,
                   pix_T_cam1: torch.Tensor, world_T_cam1: torch.Tensor,
                   world_T_ref0: torch.Tensor | None = None, world_T_ref1: torch.Tensor | None = None,
                   stabilize: str = "poses", occupancy_threshold: float = 0.5) -> dict[str, torch.Tensor]:
-    """Inputs as `estimate_egomotion`. Returns `flow` B×3×Z×Y×X (free voxels zeroed), `flow_raw`,
-    `ref0_T_ref1` B×4×4 used for stabilisation, `features0`/`features1` B×F×Z×Y×X (both in ref0) and,
-    with an occupancy module, `occupancy` B×1×Z×Y×X probabilities."""
-    if stabilize not in STABILIZE:
-        raise N3dmapError(f"stabilize must be one of {STABILIZE}, got {stabilize!r}")
-    mapper, flow_net = _module(bundle, "mapper"), _module(bundle, "flow")
-    cam_T_ref0 = rig_cam_T_ref(world_T_cam0, world_T_ref0)  # B×V×4×4
-    if stabilize == "poses":
-        ref0 = world_T_cam0[:, 0] if world_T_ref0 is None else world_T_ref0
-        ref1 = world_T_cam1[:, 0] if world_T_ref1 is None else world_T_ref1
-        ref0_T_ref1 = se3.compose(se3.invert(ref0), ref1)
-    else:
-        ref0_T_ref1 = estimate_egomotion(
-            bundle, rgb0=rgb0, depth0=depth0, pix_T_cam0=pix_T_cam0, world_T_cam0=world_T_cam0, rgb1=rgb1,
-            depth1=depth1, pix_T_cam1=pix_T_cam1, world_T_cam1=world_T_cam1, world_T_ref0=world_T_ref0,
-            world_T_ref1=world_T_ref1)["ref0_T_ref1"]
-    cam1_T_ref1 = rig_cam_T_ref(world_T_cam1, world_T_ref1)  # B×V×4×4
-    cam1_T_ref0 = cam1_T_ref1 @ se3.invert(ref0_T_ref1)[:, None]  # B×V×4×4
-    f0 = mapper(rgb0, depth0, pix_T_cam0, cam_T_ref0)  # B×F×Z×Y×X
-    f1 = mapper(rgb1, depth1, pix_T_cam1, cam1_T_ref0)  # B×F×Z×Y×X, stabilised into ref0
-    raw = flow_net(*flow_pair(flow_net, bundle.preset.grid, features=(f0, f1), rgb=(rgb0, rgb1),
-                              depth=(depth0, depth1), pix_T_cam=(pix_T_cam0, pix_T_cam1),
-                              cam_T_ref0=(cam_T_ref0, cam1_T_ref0)))["flow"]  # B×3×Z×Y×X
-    out = {"flow_raw": raw, "flow": raw, "ref0_T_ref1": ref0_T_ref1, "features0": f0, "features1": f1}
-    if "occupancy" in bundle.modules:
-        prob = bundle.modules["occupancy"].probabilities(f0)  # B×1×Z×Y×X
-        out["occupancy"] = prob
-        out["flow"] = raw * (prob >= occupancy_threshold).to(raw.dtype)
-    return out
+    """`flow_step` without a cache. Inputs as `estimate_egomotion`; stabilize "poses" (default),
+    "egomotion" or "none". Returns `flow` B×3×Z×Y×X (free voxels zeroed), `flow_raw`, `ref0_T_ref1` B×4×4
+    used for stabilisation, `features0` B×F×Z×Y×X (frame 0's map in ref0), `features1` (frame 1's,
+    stabilised into ref0; only for a flow module that compares maps) and, with an occupancy module,
+    `occupancy` B×1×Z×Y×X probabilities."""
+    out = flow_step(bundle, rgb0=rgb0, depth0=depth0, pix_T_cam0=pix_T_cam0, world_T_cam0=world_T_cam0,
+                    rgb1=rgb1, depth1=depth1, pix_T_cam1=pix_T_cam1, world_T_cam1=world_T_cam1,
+                    world_T_ref0=world_T_ref0, world_T_ref1=world_T_ref1, stabilize=stabilize, egomotion=False,
+                    occupancy_threshold=occupancy_threshold)
+    enc0 = out["previous"]
+    result = {k: out[k] for k in ("flow", "flow_raw", "ref0_T_ref1", "features1") if k in out}
+    result["features0"] = enc0.features
+    if enc0.occupancy is not None:
+        result["occupancy"] = enc0.occupancy
+    return result

@@ -1,127 +1,72 @@
 """Unsupervised moving-object detection over a loaded bundle: two RGB-D rig frames -> scored boxes.
 
-Steps (paper §3, moving objects): stabilise frame t+1 into `ref0` (with the bundle's egomotion
-estimate when it has an `egomotion` module, else with the given poses), estimate 3D flow
-(core.pipeline.flow.estimate_flow, which zeroes the flow of voxels the occupancy head calls free),
-then per example keep the voxels that frame 0's depth points occupy (`occupancy="observed"`, the
-default; the head alone fills in unseen space where flow is noise) and that lie above the ground plane
-fitted to those points, threshold the flow magnitude, take 3D connected components, score each by
-center-surround motion saliency, fit an oriented box, and suppress overlaps
-(core.moving.detect_moving.moving_objects_from_flow). Both gates were measured to matter: on tiny
-held-out pairs the boxes from briefly trained flow went from AP3D@0.25 ≈ 0 to ≈ 0.46 with them.
+One computation, two ways to call it. `moving_step` runs the pair step (core.pipeline.flow.flow_step:
+frame 0's own-frame work, egomotion once, stabilisation, 3D flow with free voxels zeroed) and the box
+post-processing (core.pipeline.moving_boxes); given `previous`, frame 0's FrameEncoding kept from the step
+before, it skips what that already holds. `moving_objects` is the stateless call: the same step without
+a cache. Every transport goes through these two: the REST and gRPC unary routes call `moving_objects`,
+the gRPC stream and the zenoh bridge call `moving_step` with their per-camera cache
+(services.inference.camera_stream).
 
-Frames (docs/conventions.md#frames): `ref0` is `world_T_ref0` when given, else the camera of view 0 at t0 (the
-inference services' convention). Boxes are canonical (x, y, z, lx, ly, lz, yaw) in ref0; velocities
-are m/s along ref0's axes. Flow is B×3×Z×Y×X in voxels, channels (x, y, z), t0 -> t1.
+Steps (paper §3, moving objects): stabilise frame t+1 into `ref0` (with the bundle's egomotion estimate
+when it has an `egomotion` module, else with the given poses), estimate 3D flow, then boxes from the
+flow of the voxels frame 0's depth shows above its ground plane (core.pipeline.moving_boxes).
+
+Frames (docs/conventions.md#frames): `ref0` is `world_T_ref0` when given, else the camera of view 0 at t0
+(the inference services' convention). Boxes are canonical (x, y, z, lx, ly, lz, yaw) in ref0; velocities
+are m/s along ref0's axes over `dt` seconds (per pair, or `config.dt`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 
-from core.errors import BundleError
-from core.geometry import se3
-from core.geometry.camera import depth_to_points
-from core.geometry.grid import GridConfig
-from core.geometry.voxelize import voxelize
-from core.moving.amodal import SizePrior
-from core.moving.detect_moving import detections_to_tensors, moving_objects_from_flow
-from core.moving.ground import DEFAULT_MARGIN_VOXELS, above_ground, fit_ground_plane
-from core.pipeline.egomotion import rig_cam_T_ref
-from core.pipeline.flow import estimate_flow
+from core.pipeline.encoding import FrameEncoding, Stopwatch, encode_previous
+from core.pipeline.flow import flow_step
+# The post-processing's names, importable from here as before it had a file of its own.
+from core.pipeline.moving_boxes import (BOXES_FRAME, DEFAULT_DT, OCCUPANCY_SOURCES, FrameEvidence,
+                                        MovingObjectsConfig, box_occupancy, boxes_from_flow, frame_evidence)
 
-BOXES_FRAME = "ref0"
-# Seconds between the two frames when the caller does not say: the built-in synthetic world's step
-# (core.synthetic.config.WorldConfig.dt). Only the velocities' scale and the speed threshold use it.
-DEFAULT_DT = 0.2
-OCCUPANCY_SOURCES = ("observed", "predicted")
+__all__ = ["BOXES_FRAME", "DEFAULT_DT", "OCCUPANCY_SOURCES", "FrameEncoding", "FrameEvidence", "MovingObjectsConfig",
+           "box_occupancy", "boxes_from_flow", "encode_previous", "frame_evidence", "moving_objects", "moving_step"]
 
 
-@dataclass(frozen=True)
-class MovingObjectsConfig:
-    """Post-processing of the stabilised flow into boxes (see moving_objects_from_flow)."""
+@torch.no_grad()
+def moving_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: torch.Tensor,
+                world_T_cam0: torch.Tensor, rgb1: torch.Tensor, depth1: torch.Tensor,
+                pix_T_cam1: torch.Tensor, world_T_cam1: torch.Tensor,
+                world_T_ref0: torch.Tensor | None = None, world_T_ref1: torch.Tensor | None = None,
+                previous: FrameEncoding | None = None, stabilize: str | None = None,
+                config: MovingObjectsConfig | None = None, dt: float | Sequence[float] | None = None,
+                timings: dict[str, float] | None = None) -> dict:
+    """rgb0/1: B×V×3×H×W in [0,1]; depth0/1: B×V×H×W metres; pix_T_cam0/1, world_T_cam0/1: B×V×4×4;
+    world_T_ref0/1: B×4×4 or None (camera of view 0). previous: frame 0's FrameEncoding from the step
+    before, or None. stabilize: "egomotion", "poses", "none" or None (egomotion when the bundle has it).
+    dt: seconds from t0 to t1, one per batch item or one for all (None: `config.dt`).
 
-    dt: float = DEFAULT_DT          # seconds from t0 to t1
-    min_speed: float = 1.0          # m/s: voxels whose flow is slower do not move
-    min_voxels: int = 3             # smaller moving components are dropped
-    occupied_above: float = 0.5     # occupancy probability above which a voxel holds matter
-    shell_margin: float | None = None  # metres of the saliency shell (None: 2 voxels)
-    nms_iou: float = 0.3            # BEV IoU above which a lower-scored box is dropped
-    connectivity: int = 26
-    # Which voxels hold matter for the boxes: "observed" — a depth point of frame 0 lies in the voxel
-    # (and the occupancy head, which already zeroed the flow, agrees) — or "predicted", the occupancy
-    # head alone (the paper's rule). The head also fills in unseen space, where the flow is noise.
-    occupancy: str = "observed"
-    # Voxels whose centre lies less than this many voxels above the ground plane fitted to frame 0's
-    # depth points never move (core.moving.ground); None: no ground plane.
-    ground_margin: float | None = DEFAULT_MARGIN_VOXELS
-    # None: each box covers the voxels seen to move (the visible part of an object). A SizePrior: amodal
-    # boxes of whole objects — oversized components split or dropped, boxes grown to the prior away from
-    # the camera (core.moving.amodal).
-    size_prior: SizePrior | None = None
-
-    def __post_init__(self) -> None:
-        if self.dt <= 0 or self.min_speed < 0 or self.min_voxels < 1:
-            raise ValueError(f"need dt > 0, min_speed ≥ 0, min_voxels ≥ 1; got {self.dt}, {self.min_speed}, "
-                             f"{self.min_voxels}")
-        if self.occupancy not in OCCUPANCY_SOURCES:
-            raise ValueError(f"occupancy must be one of {OCCUPANCY_SOURCES}, got {self.occupancy!r}")
-
-    def threshold_voxels(self, grid: GridConfig) -> float:
-        """Flow magnitude (voxels per step) of `min_speed`."""
-        return self.min_speed * self.dt / grid.voxel_size
-
-
-@dataclass
-class FrameEvidence:
-    """What frame 0's depth alone says about the scene, in ref0: `observed` B×1×Z×Y×X in {0, 1} (voxels
-    holding a depth point of any view), `ground` (one plane (4,) or None per item; core.moving.ground) and
-    `viewpoints` B×V×3 (the cameras' centres in ref0, metres: amodal boxes grow away from them)."""
-
-    observed: torch.Tensor
-    ground: list
-    viewpoints: torch.Tensor | None = None
-
-
-def frame_evidence(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor, grid: GridConfig, *,
-                   fit_ground: bool = True) -> FrameEvidence:
-    """depth B×V×H×W (metres), pix_T_cam and cam_T_ref B×V×4×4 -> FrameEvidence in ref."""
-    B, V, H, W = depth.shape
-    xyz_cam, valid = depth_to_points(depth.reshape(B * V, H, W), pix_T_cam.reshape(B * V, 4, 4))  # BV×N×3, BV×N
-    xyz_ref = se3.apply(se3.invert(cam_T_ref.reshape(B * V, 4, 4)), xyz_cam)  # BV×N×3
-    xyz_ref, valid = xyz_ref.reshape(B, V * H * W, 3), valid.reshape(B, V * H * W)  # B×VN×3, B×VN
-    observed = voxelize(xyz_ref, grid, valid)  # B×1×Z×Y×X
-    planes = [fit_ground_plane(xyz_ref[b][valid[b]].double().cpu().numpy()) if fit_ground else None
-              for b in range(B)]
-    viewpoints = se3.invert(cam_T_ref.reshape(B * V, 4, 4))[:, :3, 3].reshape(B, V, 3)  # B×V×3 ref_T_cam's t
-    return FrameEvidence(observed=observed, ground=planes, viewpoints=viewpoints)
-
-
-def boxes_from_flow(flow: torch.Tensor, occupancy: torch.Tensor | None, grid: GridConfig,
-                    config: MovingObjectsConfig | None = None, *, ground: list | None = None,
-                    viewpoints: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-    """The post-processing alone, per batch item: flow B×3×Z×Y×X (voxels, stabilised), occupancy
-    B×1×Z×Y×X probabilities or None (every voxel counts as occupied), ground: one plane or None per
-    item (voxels within `config.ground_margin` voxels of it or below do not move), or None; viewpoints:
-    B×V×3 camera centres in ref0 (amodal boxes grow away from the nearest), or None.
-
-    Returns {"boxes": B×K×7 (ref0), "scores": B×K, "valid": B×K bool, "velocities": B×K×3 m/s} on
-    flow's device, each item's rows best first (K ≥ 1; padding rows are zero and not valid).
+    Returns {"boxes": B×K×7 canonical in ref0, "scores": B×K center-surround saliency in [−1, 1],
+    "valid": B×K bool, "velocities": B×K×3 m/s in ref0, "flow": B×3×Z×Y×X (stabilised, free voxels
+    zeroed), "ref0_T_ref1": B×4×4 used to stabilise, "cam0_T_cam1": B×4×4 (the egomotion route's answer;
+    only with an egomotion module), "current": FrameEncoding of frame 1 (its ego volume only)}.
+    `timings` (a dict) receives seconds per stage: ego_volume, map_previous, evidence_previous, egomotion,
+    map_current (only for a flow module that compares feature maps), flow, boxes.
     """
     cfg = config or MovingObjectsConfig()
-    planes = ground if ground is not None and cfg.ground_margin is not None else [None] * flow.shape[0]
-    per_example = [
-        moving_objects_from_flow(flow[b], None if occupancy is None else occupancy[b, 0], grid,
-                                 threshold=cfg.threshold_voxels(grid), min_voxels=cfg.min_voxels, dt=cfg.dt,
-                                 occupied_above=cfg.occupied_above, shell_margin=cfg.shell_margin,
-                                 nms_iou=cfg.nms_iou, connectivity=cfg.connectivity,
-                                 can_move=above_ground(grid, planes[b], margin_voxels=cfg.ground_margin or 0.0),
-                                 size_prior=cfg.size_prior, viewpoints=None if viewpoints is None else viewpoints[b],
-                                 ground=planes[b])
-        for b in range(flow.shape[0])]
-    return detections_to_tensors(per_example, device=flow.device)
+    out = flow_step(bundle, rgb0=rgb0, depth0=depth0, pix_T_cam0=pix_T_cam0, world_T_cam0=world_T_cam0,
+                    rgb1=rgb1, depth1=depth1, pix_T_cam1=pix_T_cam1, world_T_cam1=world_T_cam1,
+                    world_T_ref0=world_T_ref0, world_T_ref1=world_T_ref1, previous=previous, stabilize=stabilize,
+                    evidence=True, fit_ground=cfg.ground_margin is not None, occupancy_threshold=cfg.occupied_above,
+                    timings=timings)
+    enc0 = out.pop("previous")
+    watch = Stopwatch(timings)
+    found = boxes_from_flow(out["flow"], box_occupancy(cfg, enc0.occupancy, enc0.evidence),
+                            bundle.modules["mapper"].grid, cfg, ground=enc0.evidence.ground,
+                            viewpoints=enc0.evidence.viewpoints, dt=dt)
+    watch.lap("boxes")
+    keep = ("flow", "ref0_T_ref1", "cam0_T_cam1", "current")
+    return {**found, **{k: out[k] for k in keep if k in out}}
 
 
 @torch.no_grad()
@@ -129,37 +74,11 @@ def moving_objects(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_ca
                    world_T_cam0: torch.Tensor, rgb1: torch.Tensor, depth1: torch.Tensor,
                    pix_T_cam1: torch.Tensor, world_T_cam1: torch.Tensor,
                    world_T_ref0: torch.Tensor | None = None, world_T_ref1: torch.Tensor | None = None,
-                   stabilize: str | None = None, config: MovingObjectsConfig | None = None) -> dict[str, torch.Tensor]:
-    """rgb0/1: B×V×3×H×W in [0,1]; depth0/1: B×V×H×W metres; pix_T_cam0/1, world_T_cam0/1: B×V×4×4;
-    world_T_ref0/1: B×4×4 or None (camera of view 0). stabilize: "egomotion", "poses" or None (the
-    bundle's egomotion module when it has one, else the poses).
-
-    Returns {"boxes": B×K×7 canonical in ref0, "scores": B×K center-surround saliency in [−1, 1],
-    "valid": B×K bool, "velocities": B×K×3 m/s in ref0, "flow": B×3×Z×Y×X (stabilised, free voxels
-    zeroed), "ref0_T_ref1": B×4×4 used to stabilise}.
-    """
-    if stabilize is None:
-        stabilize = "egomotion" if "egomotion" in bundle.modules else "poses"
-    cfg = config or MovingObjectsConfig()
-    if "flow" not in bundle.modules or "mapper" not in bundle.modules:
-        raise BundleError(f"moving objects need the bundle's 'mapper' and 'flow' modules; it holds "
-                          f"{sorted(bundle.modules)}")
-    out = estimate_flow(bundle, rgb0=rgb0, depth0=depth0, pix_T_cam0=pix_T_cam0, world_T_cam0=world_T_cam0,
-                        rgb1=rgb1, depth1=depth1, pix_T_cam1=pix_T_cam1, world_T_cam1=world_T_cam1,
-                        world_T_ref0=world_T_ref0, world_T_ref1=world_T_ref1, stabilize=stabilize,
-                        occupancy_threshold=cfg.occupied_above)
-    grid = bundle.modules["mapper"].grid
-    evidence = frame_evidence(depth0, pix_T_cam0, rig_cam_T_ref(world_T_cam0, world_T_ref0), grid,
-                              fit_ground=cfg.ground_margin is not None)
-    found = boxes_from_flow(out["flow"], box_occupancy(cfg, out.get("occupancy"), evidence), grid, cfg,
-                            ground=evidence.ground, viewpoints=evidence.viewpoints)
-    return {**found, "flow": out["flow"], "ref0_T_ref1": out["ref0_T_ref1"]}
-
-
-def box_occupancy(config: MovingObjectsConfig, predicted: torch.Tensor | None,
-                  evidence: FrameEvidence) -> torch.Tensor | None:
-    """The occupancy the box post-processing uses (B×1×Z×Y×X): see MovingObjectsConfig.occupancy."""
-    if config.occupancy == "predicted":
-        return predicted
-    # "observed": the flow is already zero where the head says free, so this is the intersection.
-    return evidence.observed
+                   stabilize: str | None = None, config: MovingObjectsConfig | None = None,
+                   dt: float | Sequence[float] | None = None) -> dict[str, torch.Tensor]:
+    """`moving_step` without a cache (inputs and outputs as there, less `current`)."""
+    out = moving_step(bundle, rgb0=rgb0, depth0=depth0, pix_T_cam0=pix_T_cam0, world_T_cam0=world_T_cam0,
+                      rgb1=rgb1, depth1=depth1, pix_T_cam1=pix_T_cam1, world_T_cam1=world_T_cam1,
+                      world_T_ref0=world_T_ref0, world_T_ref1=world_T_ref1, stabilize=stabilize, config=config, dt=dt)
+    del out["current"]
+    return out

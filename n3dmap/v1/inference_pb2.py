@@ -25,13 +25,15 @@ _sym_db = _symbol_database.Default()
 from n3dmap.v1 import types_pb2 as n3dmap_dot_v1_dot_types__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19n3dmap/v1/inference.proto\x12\tn3dmap.v1\x1a\x15n3dmap/v1/types.proto\"{\n\x04Grid\x12\x0c\n\x04xmin\x18\x01 \x01(\x02\x12\x0c\n\x04xmax\x18\x02 \x01(\x02\x12\x0c\n\x04ymin\x18\x03 \x01(\x02\x12\x0c\n\x04ymax\x18\x04 \x01(\x02\x12\x0c\n\x04zmin\x18\x05 \x01(\x02\x12\x0c\n\x04zmax\x18\x06 \x01(\x02\x12\t\n\x01Z\x18\x07 \x01(\x05\x12\t\n\x01Y\x18\x08 \x01(\x05\x12\t\n\x01X\x18\t \x01(\x05\"k\n\x0cResponseInfo\x12\x16\n\x0e\x62undle_version\x18\x01 \x01(\t\x12\r\n\x05\x66rame\x18\x02 \x01(\t\x12\x0f\n\x07model_s\x18\x03 \x01(\x01\x12\x0f\n\x07queue_s\x18\x04 \x01(\x01\x12\x12\n\nbatch_size\x18\x05 \x01(\x05\"?\n\nMapRequest\x12\x1f\n\x05views\x18\x01 \x03(\x0b\x32\x10.n3dmap.v1.Frame\x12\x10\n\x08\x66\x65\x61tures\x18\x02 \x01(\x08\"\xe9\x01\n\x0bMapResponse\x12%\n\x04info\x18\x01 \x01(\x0b\x32\x17.n3dmap.v1.ResponseInfo\x12\x1d\n\x04grid\x18\x02 \x01(\x0b\x32\x0f.n3dmap.v1.Grid\x12$\n\toccupancy\x18\x03 \x01(\x0b\x32\x11.n3dmap.v1.Tensor\x12$\n\theightmap\x18\x04 \x01(\x0b\x32\x11.n3dmap.v1.Tensor\x12#\n\x08\x66\x65\x61tures\x18\x05 \x01(\x0b\x32\x11.n3dmap.v1.Tensor\x12#\n\x08observed\x18\x06 \x01(\x0b\x32\x11.n3dmap.v1.Tensor\"Q\n\x0bPairRequest\x12 \n\x06views0\x18\x01 \x03(\x0b\x32\x10.n3dmap.v1.Frame\x12 \n\x06views1\x18\x02 \x03(\x0b\x32\x10.n3dmap.v1.Frame\"b\n\x11\x45gomotionResponse\x12%\n\x04info\x18\x01 \x01(\x0b\x32\x17.n3dmap.v1.ResponseInfo\x12&\n\x0b\x63\x61m0_T_cam1\x18\x02 \x01(\x0b\x32\x11.n3dmap.v1.Tensor\"u\n\x0c\x46lowResponse\x12%\n\x04info\x18\x01 \x01(\x0b\x32\x17.n3dmap.v1.ResponseInfo\x12\x1d\n\x04grid\x18\x02 \x01(\x0b\x32\x0f.n3dmap.v1.Grid\x12\x1f\n\x04\x66low\x18\x03 \x01(\x0b\x32\x11.n3dmap.v1.Tensor\"C\n\rDetectRequest\x12\x1f\n\x05views\x18\x01 \x03(\x0b\x32\x10.n3dmap.v1.Frame\x12\x11\n\tmin_score\x18\x02 \x01(\x02\"\x80\x01\n\x14MovingObjectsRequest\x12 \n\x06views0\x18\x01 \x03(\x0b\x32\x10.n3dmap.v1.Frame\x12 \n\x06views1\x18\x02 \x03(\x0b\x32\x10.n3dmap.v1.Frame\x12\x16\n\tmin_score\x18\x03 \x01(\x02H\x00\x88\x01\x01\x42\x0c\n\n_min_score\"f\n\x12\x44\x65tectionsResponse\x12%\n\x04info\x18\x01 \x01(\x0b\x32\x17.n3dmap.v1.ResponseInfo\x12)\n\ndetections\x18\x02 \x01(\x0b\x32\x15.n3dmap.v1.Detections\"\x0f\n\rModelsRequest\"\x9b\x01\n\x0eModelsResponse\x12\x16\n\x0e\x62undle_version\x18\x01 \x01(\t\x12\x0e\n\x06preset\x18\x02 \x01(\t\x12\x0f\n\x07modules\x18\x03 \x03(\t\x12\x0e\n\x06routes\x18\x04 \x03(\t\x12\x1d\n\x04grid\x18\x05 \x01(\x0b\x32\x0f.n3dmap.v1.Grid\x12\x0e\n\x06\x64\x65vice\x18\x06 \x01(\t\x12\x11\n\tmeta_json\x18\x07 \x01(\t2\xd4\x03\n\tInference\x12\x34\n\x03Map\x12\x15.n3dmap.v1.MapRequest\x1a\x16.n3dmap.v1.MapResponse\x12\x41\n\tEgomotion\x12\x16.n3dmap.v1.PairRequest\x1a\x1c.n3dmap.v1.EgomotionResponse\x12\x37\n\x04\x46low\x12\x16.n3dmap.v1.PairRequest\x1a\x17.n3dmap.v1.FlowResponse\x12\x41\n\x06\x44\x65tect\x12\x18.n3dmap.v1.DetectRequest\x1a\x1d.n3dmap.v1.DetectionsResponse\x12O\n\rMovingObjects\x12\x1f.n3dmap.v1.MovingObjectsRequest\x1a\x1d.n3dmap.v1.DetectionsResponse\x12=\n\x06Models\x12\x18.n3dmap.v1.ModelsRequest\x1a\x19.n3dmap.v1.ModelsResponse\x12\x42\n\x13StreamMovingObjects\x12\x10.n3dmap.v1.Frame\x1a\x15.n3dmap.v1.Detections(\x01\x30\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x19n3dmap/v1/inference.proto\x12\tn3dmap.v1\x1a\x15n3dmap/v1/types.proto\"{\n\x04Grid\x12\x0c\n\x04xmin\x18\x01 \x01(\x02\x12\x0c\n\x04xmax\x18\x02 \x01(\x02\x12\x0c\n\x04ymin\x18\x03 \x01(\x02\x12\x0c\n\x04ymax\x18\x04 \x01(\x02\x12\x0c\n\x04zmin\x18\x05 \x01(\x02\x12\x0c\n\x04zmax\x18\x06 \x01(\x02\x12\t\n\x01Z\x18\x07 \x01(\x05\x12\t\n\x01Y\x18\x08 \x01(\x05\x12\t\n\x01X\x18\t \x01(\x05\"k\n\x0cResponseInfo\x12\x16\n\x0e\x62undle_version\x18\x01 \x01(\t\x12\r\n\x05\x66rame\x18\x02 \x01(\t\x12\x0f\n\x07model_s\x18\x03 \x01(\x01\x12\x0f\n\x07queue_s\x18\x04 \x01(\x01\x12\x12\n\nbatch_size\x18\x05 \x01(\x05\"?\n\nMapRequest\x12\x1f\n\x05views\x18\x01 \x03(\x0b\x32\x10.n3dmap.v1.Frame\x12\x10\n\x08\x66\x65\x61tures\x18\x02 \x01(\x08\"\xe9\x01\n\x0bMapResponse\x12%\n\x04info\x18\x01 \x01(\x0b\x32\x17.n3dmap.v1.ResponseInfo\x12\x1d\n\x04grid\x18\x02 \x01(\x0b\x32\x0f.n3dmap.v1.Grid\x12$\n\toccupancy\x18\x03 \x01(\x0b\x32\x11.n3dmap.v1.Tensor\x12$\n\theightmap\x18\x04 \x01(\x0b\x32\x11.n3dmap.v1.Tensor\x12#\n\x08\x66\x65\x61tures\x18\x05 \x01(\x0b\x32\x11.n3dmap.v1.Tensor\x12#\n\x08observed\x18\x06 \x01(\x0b\x32\x11.n3dmap.v1.Tensor\"Q\n\x0bPairRequest\x12 \n\x06views0\x18\x01 \x03(\x0b\x32\x10.n3dmap.v1.Frame\x12 \n\x06views1\x18\x02 \x03(\x0b\x32\x10.n3dmap.v1.Frame\"z\n\x0b\x46lowRequest\x12 \n\x06views0\x18\x01 \x03(\x0b\x32\x10.n3dmap.v1.Frame\x12 \n\x06views1\x18\x02 \x03(\x0b\x32\x10.n3dmap.v1.Frame\x12\'\n\tstabilise\x18\x03 \x01(\x0e\x32\x14.n3dmap.v1.Stabilise\"b\n\x11\x45gomotionResponse\x12%\n\x04info\x18\x01 \x01(\x0b\x32\x17.n3dmap.v1.ResponseInfo\x12&\n\x0b\x63\x61m0_T_cam1\x18\x02 \x01(\x0b\x32\x11.n3dmap.v1.Tensor\"u\n\x0c\x46lowResponse\x12%\n\x04info\x18\x01 \x01(\x0b\x32\x17.n3dmap.v1.ResponseInfo\x12\x1d\n\x04grid\x18\x02 \x01(\x0b\x32\x0f.n3dmap.v1.Grid\x12\x1f\n\x04\x66low\x18\x03 \x01(\x0b\x32\x11.n3dmap.v1.Tensor\"C\n\rDetectRequest\x12\x1f\n\x05views\x18\x01 \x03(\x0b\x32\x10.n3dmap.v1.Frame\x12\x11\n\tmin_score\x18\x02 \x01(\x02\"\x80\x01\n\x14MovingObjectsRequest\x12 \n\x06views0\x18\x01 \x03(\x0b\x32\x10.n3dmap.v1.Frame\x12 \n\x06views1\x18\x02 \x03(\x0b\x32\x10.n3dmap.v1.Frame\x12\x16\n\tmin_score\x18\x03 \x01(\x02H\x00\x88\x01\x01\x42\x0c\n\n_min_score\"f\n\x12\x44\x65tectionsResponse\x12%\n\x04info\x18\x01 \x01(\x0b\x32\x17.n3dmap.v1.ResponseInfo\x12)\n\ndetections\x18\x02 \x01(\x0b\x32\x15.n3dmap.v1.Detections\"\x0f\n\rModelsRequest\"\x9b\x01\n\x0eModelsResponse\x12\x16\n\x0e\x62undle_version\x18\x01 \x01(\t\x12\x0e\n\x06preset\x18\x02 \x01(\t\x12\x0f\n\x07modules\x18\x03 \x03(\t\x12\x0e\n\x06routes\x18\x04 \x03(\t\x12\x1d\n\x04grid\x18\x05 \x01(\x0b\x32\x0f.n3dmap.v1.Grid\x12\x0e\n\x06\x64\x65vice\x18\x06 \x01(\t\x12\x11\n\tmeta_json\x18\x07 \x01(\t*h\n\tStabilise\x12\x19\n\x15STABILISE_UNSPECIFIED\x10\x00\x12\x17\n\x13STABILISE_EGOMOTION\x10\x01\x12\x13\n\x0fSTABILISE_POSES\x10\x02\x12\x12\n\x0eSTABILISE_NONE\x10\x03\x32\xd4\x03\n\tInference\x12\x34\n\x03Map\x12\x15.n3dmap.v1.MapRequest\x1a\x16.n3dmap.v1.MapResponse\x12\x41\n\tEgomotion\x12\x16.n3dmap.v1.PairRequest\x1a\x1c.n3dmap.v1.EgomotionResponse\x12\x37\n\x04\x46low\x12\x16.n3dmap.v1.FlowRequest\x1a\x17.n3dmap.v1.FlowResponse\x12\x41\n\x06\x44\x65tect\x12\x18.n3dmap.v1.DetectRequest\x1a\x1d.n3dmap.v1.DetectionsResponse\x12O\n\rMovingObjects\x12\x1f.n3dmap.v1.MovingObjectsRequest\x1a\x1d.n3dmap.v1.DetectionsResponse\x12=\n\x06Models\x12\x18.n3dmap.v1.ModelsRequest\x1a\x19.n3dmap.v1.ModelsResponse\x12\x42\n\x13StreamMovingObjects\x12\x10.n3dmap.v1.Frame\x1a\x15.n3dmap.v1.Detections(\x01\x30\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'n3dmap.v1.inference_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
+  _globals['_STABILISE']._serialized_start=1503
+  _globals['_STABILISE']._serialized_end=1607
   _globals['_GRID']._serialized_start=63
   _globals['_GRID']._serialized_end=186
   _globals['_RESPONSEINFO']._serialized_start=188
@@ -42,20 +44,22 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_MAPRESPONSE']._serialized_end=596
   _globals['_PAIRREQUEST']._serialized_start=598
   _globals['_PAIRREQUEST']._serialized_end=679
-  _globals['_EGOMOTIONRESPONSE']._serialized_start=681
-  _globals['_EGOMOTIONRESPONSE']._serialized_end=779
-  _globals['_FLOWRESPONSE']._serialized_start=781
-  _globals['_FLOWRESPONSE']._serialized_end=898
-  _globals['_DETECTREQUEST']._serialized_start=900
-  _globals['_DETECTREQUEST']._serialized_end=967
-  _globals['_MOVINGOBJECTSREQUEST']._serialized_start=970
-  _globals['_MOVINGOBJECTSREQUEST']._serialized_end=1098
-  _globals['_DETECTIONSRESPONSE']._serialized_start=1100
-  _globals['_DETECTIONSRESPONSE']._serialized_end=1202
-  _globals['_MODELSREQUEST']._serialized_start=1204
-  _globals['_MODELSREQUEST']._serialized_end=1219
-  _globals['_MODELSRESPONSE']._serialized_start=1222
-  _globals['_MODELSRESPONSE']._serialized_end=1377
-  _globals['_INFERENCE']._serialized_start=1380
-  _globals['_INFERENCE']._serialized_end=1848
+  _globals['_FLOWREQUEST']._serialized_start=681
+  _globals['_FLOWREQUEST']._serialized_end=803
+  _globals['_EGOMOTIONRESPONSE']._serialized_start=805
+  _globals['_EGOMOTIONRESPONSE']._serialized_end=903
+  _globals['_FLOWRESPONSE']._serialized_start=905
+  _globals['_FLOWRESPONSE']._serialized_end=1022
+  _globals['_DETECTREQUEST']._serialized_start=1024
+  _globals['_DETECTREQUEST']._serialized_end=1091
+  _globals['_MOVINGOBJECTSREQUEST']._serialized_start=1094
+  _globals['_MOVINGOBJECTSREQUEST']._serialized_end=1222
+  _globals['_DETECTIONSRESPONSE']._serialized_start=1224
+  _globals['_DETECTIONSRESPONSE']._serialized_end=1326
+  _globals['_MODELSREQUEST']._serialized_start=1328
+  _globals['_MODELSREQUEST']._serialized_end=1343
+  _globals['_MODELSRESPONSE']._serialized_start=1346
+  _globals['_MODELSRESPONSE']._serialized_end=1501
+  _globals['_INFERENCE']._serialized_start=1610
+  _globals['_INFERENCE']._serialized_end=2078
 # @@protoc_insertion_point(module_scope)

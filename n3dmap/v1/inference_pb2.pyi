@@ -1,11 +1,23 @@
 from n3dmap.v1 import types_pb2 as _types_pb2
 from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from collections.abc import Iterable as _Iterable, Mapping as _Mapping
 from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
+
+class Stabilise(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    STABILISE_UNSPECIFIED: _ClassVar[Stabilise]
+    STABILISE_EGOMOTION: _ClassVar[Stabilise]
+    STABILISE_POSES: _ClassVar[Stabilise]
+    STABILISE_NONE: _ClassVar[Stabilise]
+STABILISE_UNSPECIFIED: Stabilise
+STABILISE_EGOMOTION: Stabilise
+STABILISE_POSES: Stabilise
+STABILISE_NONE: Stabilise
 
 class Grid(_message.Message):
     __slots__ = ("xmin", "xmax", "ymin", "ymax", "zmin", "zmax", "Z", "Y", "X")
@@ -74,6 +86,16 @@ class PairRequest(_message.Message):
     views0: _containers.RepeatedCompositeFieldContainer[_types_pb2.Frame]
     views1: _containers.RepeatedCompositeFieldContainer[_types_pb2.Frame]
     def __init__(self, views0: _Optional[_Iterable[_Union[_types_pb2.Frame, _Mapping]]] = ..., views1: _Optional[_Iterable[_Union[_types_pb2.Frame, _Mapping]]] = ...) -> None: ...
+
+class FlowRequest(_message.Message):
+    __slots__ = ("views0", "views1", "stabilise")
+    VIEWS0_FIELD_NUMBER: _ClassVar[int]
+    VIEWS1_FIELD_NUMBER: _ClassVar[int]
+    STABILISE_FIELD_NUMBER: _ClassVar[int]
+    views0: _containers.RepeatedCompositeFieldContainer[_types_pb2.Frame]
+    views1: _containers.RepeatedCompositeFieldContainer[_types_pb2.Frame]
+    stabilise: Stabilise
+    def __init__(self, views0: _Optional[_Iterable[_Union[_types_pb2.Frame, _Mapping]]] = ..., views1: _Optional[_Iterable[_Union[_types_pb2.Frame, _Mapping]]] = ..., stabilise: _Optional[_Union[Stabilise, str]] = ...) -> None: ...
 
 class EgomotionResponse(_message.Message):
     __slots__ = ("info", "cam0_T_cam1")

@@ -47,7 +47,7 @@ class InferenceStub:
                 _registered_method=True)
         self.Flow = channel.unary_unary(
                 '/n3dmap.v1.Inference/Flow',
-                request_serializer=n3dmap_dot_v1_dot_inference__pb2.PairRequest.SerializeToString,
+                request_serializer=n3dmap_dot_v1_dot_inference__pb2.FlowRequest.SerializeToString,
                 response_deserializer=n3dmap_dot_v1_dot_inference__pb2.FlowResponse.FromString,
                 _registered_method=True)
         self.Detect = channel.unary_unary(
@@ -113,7 +113,12 @@ class InferenceServicer:
 
     def StreamMovingObjects(self, request_iterator, context):
         """Frames of one or more cameras in; per frame, the moving objects between that camera's previous
-        frame and this one (the first frame of a camera yields empty Detections).
+        frame and this one, as MovingObjects computes them (the first frame of a camera yields empty
+        Detections), with the zenoh bridge's rules: a frame whose sequence number is not past its camera's
+        last one (a duplicate or out of order) is dropped without an answer; the previous frame's encoding is
+        reused; the interval is the timestamps' difference (sequences × --frame-dt when both are 0). A frame
+        that fails validation, or whose timestamp is not after its camera's previous one, ends the stream
+        with INVALID_ARGUMENT naming the field.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -134,7 +139,7 @@ def add_InferenceServicer_to_server(servicer, server):
             ),
             'Flow': grpc.unary_unary_rpc_method_handler(
                     servicer.Flow,
-                    request_deserializer=n3dmap_dot_v1_dot_inference__pb2.PairRequest.FromString,
+                    request_deserializer=n3dmap_dot_v1_dot_inference__pb2.FlowRequest.FromString,
                     response_serializer=n3dmap_dot_v1_dot_inference__pb2.FlowResponse.SerializeToString,
             ),
             'Detect': grpc.unary_unary_rpc_method_handler(
@@ -237,7 +242,7 @@ class Inference:
             request,
             target,
             '/n3dmap.v1.Inference/Flow',
-            n3dmap_dot_v1_dot_inference__pb2.PairRequest.SerializeToString,
+            n3dmap_dot_v1_dot_inference__pb2.FlowRequest.SerializeToString,
             n3dmap_dot_v1_dot_inference__pb2.FlowResponse.FromString,
             options,
             channel_credentials,

@@ -6,6 +6,14 @@ from __future__ import annotations
 import argparse
 import math
 
+# Seconds per sequence number of frames without timestamps (`--frame-dt` of `serve` and `stream bridge`):
+# = core.pipeline.moving_boxes.DEFAULT_DT (a test keeps them equal); not imported, so that parsing the
+# command line does not load torch.
+DEFAULT_FRAME_DT = 0.2
+FRAME_DT_HELP = ("seconds between consecutive frames of a camera, used only for moving-object pairs whose frames "
+                 "carry no timestamps (both 0): the pair then spans (sequence1 − sequence0) × S. Otherwise the "
+                 "interval is the frames' timestamp difference (default %(default)s, the synthetic world's step)")
+
 
 def _number(text: str, kind: type, what: str):
     try:

@@ -180,12 +180,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
     from core.data.shards import check_output_dir, write_dataset
     from core.presets import get_preset
 
-    check_output_dir(args.out, overwrite=args.overwrite)   # before the (slow) generator import
-    try:
-        from core.synthetic import generate_record  # noqa: F401 - only checks that it is there
-    except ImportError:
-        raise N3dmapError("the synthetic generator (core.synthetic.generate_record) is not available "
-                       "in this build") from None
+    check_output_dir(args.out, overwrite=args.overwrite)
 
     preset = get_preset(args.preset)
     if args.episodes >= SEED_STRIDE:

@@ -3,8 +3,7 @@
 Every kind writes REPORT_DIR/report.md, metrics.json and PNG plots through one writer
 (`services.reports.Report`). A kind lives in a module listed in `EVAL_KINDS` that exposes
 `register(kind_subparsers)`; most build their parser with `add_eval_parser` (the shared options
-`--data --bundle --out --max-records --device`) and set `func`. A module not written yet is skipped,
-like `main.AREAS`. Adding a kind (detection, moving, retrieval, all) is one line here plus its module.
+`--data --bundle --out --max-records --device`) and set `func`. Adding a kind (detection, moving, retrieval, all) is one line here plus its module.
 """
 
 from __future__ import annotations
@@ -137,11 +136,5 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser("eval", help="evaluate a bundle on a dataset and write a report",
                                    description="Evaluate and write REPORT_DIR/report.md, metrics.json and plots.")
     kinds = parser.add_subparsers(dest="eval_kind", metavar="KIND", required=True)
-    for kind, module_name in EVAL_KINDS.items():
-        try:
-            module = importlib.import_module(module_name)
-        except ModuleNotFoundError as e:
-            if e.name == module_name:
-                continue
-            raise
-        module.register(kinds)
+    for module_name in EVAL_KINDS.values():
+        importlib.import_module(module_name).register(kinds)

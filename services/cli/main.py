@@ -28,15 +28,6 @@ AREAS: dict[str, str] = {
 }
 
 
-def _area_module(area: str):
-    try:
-        return importlib.import_module(f"services.cli.{area}")
-    except ModuleNotFoundError as e:
-        if e.name == f"services.cli.{area}":
-            return None  # that area is not part of this build
-        raise
-
-
 def build_parser(argv: list[str] | None = None, *, full: bool = False) -> argparse.ArgumentParser:
     """The parser; with `full=True` every area registers its real subcommands (tests use this to
     check manifests and docs against the real options), else only the one named in `argv`."""
@@ -49,13 +40,10 @@ def build_parser(argv: list[str] | None = None, *, full: bool = False) -> argpar
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     wanted = next((a for a in (argv or []) if not a.startswith("-")), None)
     for area, summary in AREAS.items():
-        module = _area_module(area) if (full or area == wanted) else None
-        if module is not None:
-            module.register(sub)
-        elif full or area != wanted:
-            if full:
-                continue  # absent from this build
-            sub.add_parser(area, help=summary, add_help=False)
+        if full or area == wanted:
+            importlib.import_module(f"services.cli.{area}").register(sub)
+        else:
+            sub.add_parser(area, help=summary, add_help=False)  # a placeholder: parsing it needs `wanted`
     return parser
 
 
@@ -75,8 +63,6 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(argv)
     args = parser.parse_args(argv)
-    if not hasattr(args, "func"):  # an area absent from this build
-        parser.error(f"{args.command}: not available in this build")
     try:
         result = args.func(args)
     except BrokenPipeError:  # `n3dmap ... | head`: the reader left (an OSError, so caught first)

@@ -13,12 +13,9 @@ import threading
 import time
 from pathlib import Path
 
-from services.cli.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
+from services.cli.argtypes import (DEFAULT_FRAME_DT, FRAME_DT_HELP, non_negative_float, non_negative_int, positive_float,
+                                   positive_int)
 from services.streaming.session import add_zenoh_arguments, options_from_args
-
-# = core.pipeline.moving.DEFAULT_DT (a test keeps them equal); not imported, so that parsing the
-# command line does not load torch
-DEFAULT_FRAME_DT = 0.2
 
 
 def register(subparsers) -> None:
@@ -45,10 +42,7 @@ def register(subparsers) -> None:
                         help="amodal boxes of this object size in metres (length, width, height): oversized "
                              "components are split or dropped, partial ones completed (default: visible boxes); "
                              "`n3dmap eval moving` estimates it without labels and prints it in its report")
-    bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S",
-                        help="seconds between consecutive frames of a camera (its capture interval; default "
-                             "%(default)s, the synthetic world's step). A pair that spans dropped frames "
-                             "spans their intervals too, so velocities stay in m/s")
+    bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
     bridge.add_argument("--bridge-id", default=None, help="id in the liveliness token and status key (default: random)")
     bridge.add_argument("--duration", type=positive_float, default=None, metavar="S",
                         help="stop after S seconds (default: run until SIGINT/SIGTERM)")

@@ -22,8 +22,7 @@ from pathlib import Path
 from core.errors import DataError
 from services.training.config import TrainConfigError
 
-# Task parser modules under services/cli/train_tasks/, in `n3dmap train --help` order. A module not
-# written yet is skipped, like main.AREAS.
+# Task parser modules under services/cli/train_tasks/, in `n3dmap train --help` order.
 TRAIN_TASKS = ("pretrain", "egomotion", "occupancy", "flow", "detector")
 
 # Options that only steer the submission itself and are not forwarded to the cluster's command.
@@ -203,10 +202,4 @@ def register(subparsers) -> None:
                     "or on a Ray cluster (--address). Rerunning a command resumes its run dir.")
     tasks = train.add_subparsers(dest="task", metavar="TASK", required=True)
     for name in TRAIN_TASKS:
-        try:
-            module = importlib.import_module(f"services.cli.train_tasks.{name}")
-        except ModuleNotFoundError as e:
-            if e.name == f"services.cli.train_tasks.{name}":
-                continue
-            raise
-        module.register(tasks)
+        importlib.import_module(f"services.cli.train_tasks.{name}").register(tasks)

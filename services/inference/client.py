@@ -112,6 +112,7 @@ class RestClient:
                f"pix_T_cam{suffix}": np.asarray(f.pix_T_cam, np.float32)}
         if f.world_T_cam is not None:
             out[f"world_T_cam{suffix}"] = np.asarray(f.world_T_cam, np.float32)
+        out[f"timestamp{suffix}"], out[f"sequence{suffix}"] = np.float64(f.timestamp), np.uint64(f.sequence)
         return out
 
     def _post(self, path: str, *, json_body: dict, npz_arrays: dict, params: dict | None = None,
@@ -160,9 +161,10 @@ class RestClient:
         out["cam0_T_cam1"] = np.asarray(out["cam0_T_cam1"], np.float32)
         return out
 
-    def flow(self, frames0: Frames, frames1: Frames) -> dict:
-        """-> {"flow": 3×Z×Y×X (voxels, channels x, y, z), "grid", "info"}."""
-        return self._post("/v1/flow", **self._pair_bodies(frames0, frames1), want_npz=True)
+    def flow(self, frames0: Frames, frames1: Frames, *, stabilise: str = "poses") -> dict:
+        """-> {"flow": 3×Z×Y×X (voxels, channels x, y, z), "grid", "info"}. stabilise: "egomotion", "poses"
+        (frames0 and frames1 then need world_T_cam) or "none"."""
+        return self._post("/v1/flow", **self._pair_bodies(frames0, frames1, stabilise=stabilise), want_npz=True)
 
     def detect(self, frames: Frames, *, min_score: float = 0.0) -> dict:
         """-> {"boxes": K×7, "scores": K, "velocities": K×3, "labels", "frame", "bundle_version", "info", ...}."""
@@ -301,8 +303,14 @@ class GrpcClient:
         r = self._call(self._stub.Egomotion, self._pair(frames0, frames1))
         return {"info": _info(r.info), "cam0_T_cam1": codecs.tensor_to_numpy(r.cam0_T_cam1, "cam0_T_cam1")}
 
-    def flow(self, frames0: Frames, frames1: Frames) -> dict:
-        r = self._call(self._stub.Flow, self._pair(frames0, frames1))
+    def flow(self, frames0: Frames, frames1: Frames, *, stabilise: str = "poses") -> dict:
+        from n3dmap.v1 import inference_pb2
+
+        # an unknown name travels as enum value -1, which the server refuses naming `stabilise`
+        mode = {"egomotion": inference_pb2.STABILISE_EGOMOTION, "poses": inference_pb2.STABILISE_POSES,
+                "none": inference_pb2.STABILISE_NONE}.get(stabilise, -1)
+        req = inference_pb2.FlowRequest(views0=self._views(frames0), views1=self._views(frames1), stabilise=mode)
+        r = self._call(self._stub.Flow, req)
         return {"info": _info(r.info), "grid": _grid(r.grid), "flow": codecs.tensor_to_numpy(r.flow, "flow")}
 
     def detect(self, frames: Frames, *, min_score: float = 0.0) -> dict:
@@ -320,7 +328,8 @@ class GrpcClient:
         return {"info": _info(r.info), **detections_dict(r.detections)}
 
     def stream_moving_objects(self, frames):
-        """Iterable of single-view Frames -> iterator of detections dicts (one per frame)."""
+        """Iterable of single-view Frames -> iterator of detections dicts: one per frame, but none for a frame
+        whose sequence number is not past its camera's last one (dropped as a duplicate or out of order)."""
         def requests():
             for f in frames:
                 yield frame_proto(f.batched(), 0, png=self._png)

@@ -10,8 +10,8 @@ values say what they are:
 - the camera looks along a flat ground 2 m below it: the top rows see sky (depth 0 = no return), the
   bottom rows see ground at depth 2·fy / (v − cy) metres along Z;
 - `rgb` travels as a PNG, `depth` as a raw float32 array in metres, so both image encodings appear;
-- the pair routes' second instant is the same view with the camera 0.5 m further forward (+Z), which
-  leaves a flat ground's depth image unchanged.
+- the pair routes' second instant is the same view 0.2 s later (sequence 1) with the camera 0.5 m further
+  forward (+Z), which leaves a flat ground's depth image unchanged.
 Any image size is accepted: the map grid comes from the bundle, not from the images.
 """
 
@@ -26,6 +26,7 @@ from services.inference import codecs
 H, W = 6, 18
 GROUND_BELOW_M = 2.0
 FORWARD_STEP_M = 0.5
+STEP_S = 0.2
 _SKY = (135, 190, 235)
 _GROUND = (110, 110, 105)
 
@@ -52,7 +53,7 @@ def _rgb(depth: np.ndarray) -> np.ndarray:
     return np.where(depth[..., None] > 0, np.array(_GROUND, np.uint8), np.array(_SKY, np.uint8))
 
 
-def example_view(*, forward_m: float = 0.0) -> dict:
+def example_view(*, forward_m: float = 0.0, sequence: int = 0, timestamp: float = 0.0) -> dict:
     """A FrameJSON dict of the example view, its camera `forward_m` metres along world Z."""
     depth = _ground_depth()
     dtype, shape, data = codecs.array_to_bytes(depth)
@@ -62,8 +63,8 @@ def example_view(*, forward_m: float = 0.0) -> dict:
         "pix_T_cam": _intrinsics(),
         "world_T_cam": _pose(forward_m),
         "camera_id": "front",
-        "sequence": 0,
-        "timestamp": 0.0,
+        "sequence": sequence,
+        "timestamp": timestamp,
     }
 
 
@@ -73,12 +74,15 @@ def _openapi(summary: str, value: dict) -> dict:
 
 
 def _pair() -> dict:
-    return {"views0": [example_view()], "views1": [example_view(forward_m=FORWARD_STEP_M)]}
+    return {"views0": [example_view()],
+            "views1": [example_view(forward_m=FORWARD_STEP_M, sequence=1, timestamp=STEP_S)]}
 
 
 MAP = _openapi("one 6×18 view of flat ground (PNG rgb, float32 depth)",
                {"views": [example_view()], "features": False})
 PAIR = _openapi("the same view twice, the camera 0.5 m further forward the second time", _pair())
+FLOW = _openapi("the same view twice, the camera 0.5 m further forward the second time; stabilised with the poses",
+                {**_pair(), "stabilise": "poses"})
 DETECT = _openapi("one 6×18 view of flat ground", {"views": [example_view()], "min_score": 0.0})
 MOVING_OBJECTS = _openapi("the same view twice, the camera 0.5 m further forward the second time",
                           {**_pair(), "min_score": -1.0})

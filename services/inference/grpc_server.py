@@ -16,17 +16,21 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from core.errors import DataError, ShapeError
-from n3dmap.v1 import inference_pb2, inference_pb2_grpc, types_pb2
+from n3dmap.v1 import inference_pb2, inference_pb2_grpc
 from services.inference import codecs, wire
-from services.inference.errors import (InvalidInput, ModuleUnavailable, NotReady, Overloaded,
-                                       RequestTimeout, ServiceError)
-from services.inference.routes import DetectInput, MapInput, MovingInput, PairInput
+from services.inference.errors import InvalidInput, ModuleUnavailable, NotReady, Overloaded, RequestTimeout
+from services.inference.camera_state import CameraState
+from services.inference.camera_stream import MovingStream
+from services.inference.routes import DetectInput, MapInput, flow_input, moving_input, pair_input
 from services.inference.runtime import Runtime
-from services.inference.validation import check_min_score, check_pair, stack_views
+from services.inference.validation import check_min_score
 
 log = logging.getLogger("n3dmap.grpc")
 
 SERVICE_NAME = inference_pb2.DESCRIPTOR.services_by_name["Inference"].full_name
+# FlowRequest.stabilise -> core.pipeline.stabilise mode; UNSPECIFIED keeps the poses, as before the field.
+STABILISE = {inference_pb2.STABILISE_UNSPECIFIED: "poses", inference_pb2.STABILISE_POSES: "poses",
+             inference_pb2.STABILISE_EGOMOTION: "egomotion", inference_pb2.STABILISE_NONE: "none"}
 MAX_MESSAGE_BYTES = 64 * 2**20
 _CODES = [(InvalidInput, grpc.StatusCode.INVALID_ARGUMENT), (ModuleUnavailable, grpc.StatusCode.UNIMPLEMENTED),
           (Overloaded, grpc.StatusCode.RESOURCE_EXHAUSTED), (RequestTimeout, grpc.StatusCode.DEADLINE_EXCEEDED),
@@ -46,6 +50,15 @@ def _code_of(e: Exception) -> grpc.StatusCode | None:
     return None
 
 
+def _failure(rpc: str, e: Exception) -> tuple[grpc.StatusCode, str]:
+    """The status a failed call ends with: the typed errors' own, INTERNAL (logged) for anything else."""
+    code = _code_of(e)
+    if code is not None:
+        return code, str(e)
+    log.exception("%s failed", rpc)
+    return grpc.StatusCode.INTERNAL, f"{type(e).__name__}: {e}"
+
+
 def _deadline(context: grpc.aio.ServicerContext) -> float | None:
     remaining = context.time_remaining()
     return remaining if remaining is not None and remaining > 0 else None
@@ -60,16 +73,12 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         status = "OK"
         try:
             return await fn()
-        except (ServiceError, ShapeError, DataError) as e:
-            code = _code_of(e)
-            status = code.name
-            await context.abort(code, str(e))
+        except (grpc.aio.AbortError, grpc.RpcError):
+            raise
         except Exception as e:
-            if isinstance(e, (grpc.aio.AbortError, grpc.RpcError)):
-                raise
-            status = "INTERNAL"
-            log.exception("%s failed", rpc)
-            await context.abort(grpc.StatusCode.INTERNAL, f"{type(e).__name__}: {e}")
+            code, message = _failure(rpc, e)
+            status = code.name
+            await context.abort(code, message)
         finally:
             self.runtime.metrics.observe_request("grpc", rpc, status, time.perf_counter() - started)
 
@@ -84,22 +93,21 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             return inference_pb2.MapResponse(info=wire.info_proto(answer), grid=self._grid(), **arrays)
         return await self._call("Map", context, run)
 
-    def _pair(self, request) -> PairInput:
-        v0 = wire.views_from_proto(request.views0, "views0")
-        v1 = wire.views_from_proto(request.views1, "views1")
-        check_pair(v0, v1, "views1")
-        return PairInput(views0=v0, views1=v1)
+    def _views(self, request) -> tuple:
+        return wire.views_from_proto(request.views0, "views0"), wire.views_from_proto(request.views1, "views1")
 
     async def Egomotion(self, request: inference_pb2.PairRequest, context):
         async def run():
-            answer = await self.runtime.infer("egomotion", self._pair(request), timeout_s=_deadline(context))
+            answer = await self.runtime.infer("egomotion", pair_input(*self._views(request)), timeout_s=_deadline(context))
             return inference_pb2.EgomotionResponse(info=wire.info_proto(answer),
                                                    cam0_T_cam1=codecs.numpy_to_tensor(answer.result.cam0_T_cam1))
         return await self._call("Egomotion", context, run)
 
-    async def Flow(self, request: inference_pb2.PairRequest, context):
+    async def Flow(self, request: inference_pb2.FlowRequest, context):
         async def run():
-            answer = await self.runtime.infer("flow", self._pair(request), timeout_s=_deadline(context))
+            stabilise = STABILISE.get(request.stabilise, f"enum value {request.stabilise}")
+            answer = await self.runtime.infer("flow", flow_input(*self._views(request), stabilise),
+                                              timeout_s=_deadline(context))
             return inference_pb2.FlowResponse(info=wire.info_proto(answer), grid=self._grid(),
                                               flow=codecs.numpy_to_tensor(answer.result.flow))
         return await self._call("Flow", context, run)
@@ -115,13 +123,14 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
 
     async def MovingObjects(self, request: inference_pb2.MovingObjectsRequest, context):
         async def run():
-            pair = self._pair(request)
+            views0, views1 = self._views(request)
             score = check_min_score(request.min_score, low=-1.0) if request.HasField("min_score") else -1.0
-            item = MovingInput(views0=pair.views0, views1=pair.views1, min_score=score)
+            item = moving_input(views0, views1, min_score=score, frame_dt=self.runtime.config.frame_dt,
+                                modules=self.runtime.modules)
             answer = await self.runtime.infer("moving_objects", item, timeout_s=_deadline(context))
             return inference_pb2.DetectionsResponse(info=wire.info_proto(answer), detections=wire.detections_proto(
-                answer.result, frame=answer.frame, bundle_version=answer.bundle_version, views=pair.views1,
-                ref_views=pair.views0))
+                answer.result, frame=answer.frame, bundle_version=answer.bundle_version, views=views1,
+                ref_views=views0))
         return await self._call("MovingObjects", context, run)
 
     async def Models(self, request, context):
@@ -133,34 +142,33 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         return await self._call("Models", context, run)
 
     async def StreamMovingObjects(self, request_iterator, context):
-        """Per camera, moving objects between its previous frame and this one (first: no boxes)."""
+        """Per camera, moving objects between its previous frame and this one: the zenoh bridge's step
+        (services.inference.camera_stream), run on the model thread."""
         started = time.perf_counter()
+        status = "OK"
         try:
             self.runtime.require("moving_objects")
-        except ModuleUnavailable as e:
-            await context.abort(grpc.StatusCode.UNIMPLEMENTED, str(e))
-        previous: dict[str, object] = {}
-        async for frame in request_iterator:
-            received = time.perf_counter()
-            try:
-                views = stack_views([wire.view_from_proto(frame, "frame")], "frame")
-                prev = previous.get(frame.camera_id)
-                previous[frame.camera_id] = views
-                if prev is None or prev.shape_key != views.shape_key:
-                    yield types_pb2.Detections(frame="ref", bundle_version=self.runtime.version,
-                                               camera_id=frame.camera_id, sequence=frame.sequence,
-                                               source_timestamp=frame.timestamp,
-                                               latency_s=time.perf_counter() - received)
-                    continue
-                answer = await self.runtime.infer("moving_objects", MovingInput(views0=prev, views1=views),
-                                                  timeout_s=_deadline(context))
-            except (ServiceError, ShapeError, DataError) as e:
-                self.runtime.metrics.observe_request("grpc", "StreamMovingObjects", _code_of(e).name,
-                                                     time.perf_counter() - started)
-                await context.abort(_code_of(e), str(e))
-            yield wire.detections_proto(answer.result, frame=answer.frame, bundle_version=answer.bundle_version,
-                                        views=views, ref_views=prev, latency_s=time.perf_counter() - received)
-        self.runtime.metrics.observe_request("grpc", "StreamMovingObjects", "OK", time.perf_counter() - started)
+            stream = MovingStream(self.runtime, min_score=-1.0, frame_dt=self.runtime.config.frame_dt)
+            states: dict[str, CameraState] = {}
+            async for frame in request_iterator:
+                received = time.perf_counter()
+                view = wire.view_from_proto(frame, "frame")
+                state = states.setdefault(frame.camera_id, CameraState())
+                if state.verdict(view.sequence) is not None:
+                    continue  # a duplicate or out-of-order frame: dropped, as the bridge drops it
+                answer = await self.runtime.call_on_model_thread(
+                    lambda: stream.step(frame.camera_id, state, view), timeout_s=_deadline(context))
+                state.advance(view)
+                answer.detections.latency_s = time.perf_counter() - received
+                yield answer.detections
+        except (grpc.aio.AbortError, grpc.RpcError):
+            raise
+        except Exception as e:
+            code, message = _failure("StreamMovingObjects", e)
+            status = code.name
+            await context.abort(code, message)
+        finally:
+            self.runtime.metrics.observe_request("grpc", "StreamMovingObjects", status, time.perf_counter() - started)
 
 
 class _TokenInterceptor(grpc.aio.ServerInterceptor):

@@ -29,9 +29,9 @@ from core.errors import BundleError, DataError, ShapeError
 from services.inference import codecs, examples, schemas, wire
 from services.inference.errors import (InvalidInput, ModuleUnavailable, NotReady, Overloaded,
                                        RequestTimeout, ServiceError)
-from services.inference.routes import DetectInput, MapInput, MovingInput, PairInput
+from services.inference.routes import DetectInput, MapInput, flow_input, moving_input, pair_input
 from services.inference.runtime import Answer, Runtime
-from services.inference.validation import check_min_score, check_pair
+from services.inference.validation import check_min_score
 
 log = logging.getLogger("n3dmap.rest")
 
@@ -88,8 +88,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
         lifespan=lifespan or default_lifespan, max_body_size=max_body_bytes)
     app.state.runtime = runtime
     # Component schemas referenced by the hand-written request bodies below.
-    extra_models = (schemas.MapRequestJSON, schemas.PairRequestJSON, schemas.DetectRequestJSON,
-                    schemas.MovingObjectsRequestJSON)
+    extra_models = (schemas.MapRequestJSON, schemas.PairRequestJSON, schemas.FlowRequestJSON,
+                    schemas.DetectRequestJSON, schemas.MovingObjectsRequestJSON)
 
     def check_token(request: Request) -> None:
         if token is None:
@@ -168,12 +168,12 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
         return {"info": wire.info_dict(answer), "grid": grid(), **out}
 
     async def pair_item(request: Request, model) -> tuple[Any, Any]:
+        """(the JSON body, or None for .npz, (views0, views1))."""
         kind, body = await parse(request, model)
         if kind == "json":
             v0, v1 = wire.views_from_json(body.views0, "views0"), wire.views_from_json(body.views1, "views1")
         else:
             v0, v1 = wire.views_from_npz(body, "0"), wire.views_from_npz(body, "1")
-        check_pair(v0, v1, "views1")
         return body if kind == "json" else None, (v0, v1)
 
     @app.post("/v1/egomotion", dependencies=guarded, response_model=schemas.EgomotionResponseJSON, tags=["inference"],
@@ -182,18 +182,20 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
                                                  examples.PAIR),
               responses=_ERRORS)
     async def egomotion_route(request: Request):
-        _, (v0, v1) = await pair_item(request, schemas.PairRequestJSON)
-        answer = await runtime.infer("egomotion", PairInput(views0=v0, views1=v1))
+        _, views = await pair_item(request, schemas.PairRequestJSON)
+        answer = await runtime.infer("egomotion", pair_input(*views))
         return {"info": wire.info_dict(answer), "cam0_T_cam1": answer.result.cam0_T_cam1.tolist()}
 
     @app.post("/v1/flow", dependencies=guarded, response_model=schemas.FlowResponseJSON, tags=["inference"],
-              summary="Frame pair -> 3D flow in ref (voxels, t0 -> t1)",
-              openapi_extra=_request_body_schema(schemas.PairRequestJSON, "arrays rgb0, depth0, pix_T_cam0, rgb1, ...",
-                                                 examples.PAIR),
+              summary="Frame pair -> 3D flow in ref (voxels, t0 -> t1), stabilised as `stabilise` says",
+              openapi_extra=_request_body_schema(schemas.FlowRequestJSON, "arrays rgb0, depth0, pix_T_cam0, rgb1, ...",
+                                                 examples.FLOW),
               responses=_ERRORS)
-    async def flow_route(request: Request):
-        _, (v0, v1) = await pair_item(request, schemas.PairRequestJSON)
-        answer = await runtime.infer("flow", PairInput(views0=v0, views1=v1))
+    async def flow_route(request: Request,
+                         stabilise: Annotated[schemas.Stabilise, Query(description="binary bodies: "
+                                                                       + schemas.STABILISE_DOC)] = "poses"):
+        body, views = await pair_item(request, schemas.FlowRequestJSON)
+        answer = await runtime.infer("flow", flow_input(*views, body.stabilise if body is not None else stabilise))
         if wants_npz(request):
             return npz_response(answer, {"flow": answer.result.flow}, {"grid": grid()})
         return {"info": wire.info_dict(answer), "grid": grid(), "flow": wire.tensor_json(answer.result.flow)}
@@ -225,7 +227,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
                            min_score: Annotated[float, Query(ge=-1, le=1, description="binary bodies")] = -1.0):
         body, (v0, v1) = await pair_item(request, schemas.MovingObjectsRequestJSON)
         score = body.min_score if body is not None else check_min_score(min_score, low=-1.0)
-        answer = await runtime.infer("moving_objects", MovingInput(views0=v0, views1=v1, min_score=score))
+        item = moving_input(v0, v1, min_score=score, frame_dt=runtime.config.frame_dt, modules=runtime.modules)
+        answer = await runtime.infer("moving_objects", item)
         return detections_json(answer, v1)  # boxes in ref = views0[0]'s camera; provenance of the newest frame
 
     @app.get("/v1/models", dependencies=guarded, response_model=schemas.ModelsResponseJSON, tags=["admin"],

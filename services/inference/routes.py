@@ -1,20 +1,26 @@
 """The inference routes over `core.pipeline`: what each needs, how requests batch, one batched call.
 
-This is the only file that calls `core.pipeline`; transports (REST, gRPC, zenoh) and the runtime
-see validated numpy inputs (validation.Views) and numpy results. Every route runs a whole batch of
-requests as one pipeline call (inputs stacked along B) and splits the outputs back per request.
+Transports (REST, gRPC) decode and validate into `validation.Views`, build a route's input with the
+constructors here (which refuse, naming the field, what a route cannot answer without guessing), and
+`await runtime.infer(route, input)`. Every route runs a whole batch of requests as one `core.pipeline`
+call (inputs stacked along B) and splits the outputs back per request. The converters between validated
+numpy inputs and pipeline tensors (`views_tensors`, `pair_tensors`, `detections_results`) live here
+only; the stream step (camera_stream.py) uses them too.
 """
 
 from __future__ import annotations
 
-import types
 from dataclasses import dataclass
-from typing import Any, Callable, Hashable
+from typing import Any, Callable, Hashable, Sequence
 
 import numpy as np
 import torch
 
-from services.inference.validation import Views
+from core.pipeline import detect, estimate_egomotion, estimate_flow, map_frames, moving_objects
+from core.pipeline.moving_boxes import DEFAULT_DT
+from core.pipeline.stabilise import STABILISE
+from services.inference.errors import InvalidInput
+from services.inference.validation import Views, check_pair, pair_interval, require_poses
 
 BOX_FRAME = "ref"  # boxes, volumes and poses of every answer live in `ref` = camera of views[0]
 
@@ -32,6 +38,13 @@ class PairInput:
 
 
 @dataclass(frozen=True)
+class FlowInput:
+    views0: Views
+    views1: Views
+    stabilise: str = "poses"          # core.pipeline.stabilise: "egomotion" | "poses" | "none"
+
+
+@dataclass(frozen=True)
 class DetectInput:
     views: Views
     min_score: float = 0.0
@@ -42,6 +55,7 @@ class MovingInput:
     views0: Views
     views1: Views
     min_score: float = -1.0           # saliency scores lie in [−1, 1]: the default keeps every box
+    dt: float = DEFAULT_DT            # seconds from views0 to views1 (validation.pair_interval)
 
 
 @dataclass(frozen=True)
@@ -70,18 +84,69 @@ class DetectionsResult:
     labels: list[str]
 
 
+def _no_extra(item) -> tuple[str, ...]:
+    return ()
+
+
 @dataclass(frozen=True)
 class Route:
     """One inference route: the bundle modules it needs and its batched runner."""
 
     name: str
-    modules: tuple[str, ...]          # bundle modules it needs
-    function: str                     # the core.pipeline function it calls
+    modules: tuple[str, ...]          # bundle modules every request needs
     batch_key: Callable[[Any], Hashable]
     run: Callable[[Any, list, torch.device], list]  # (bundle, inputs, device) -> results
+    extra_modules: Callable[[Any], tuple[str, ...]] = _no_extra  # what one request's options add
+
+    def needs(self, item: Any | None = None) -> tuple[str, ...]:
+        return self.modules if item is None else self.modules + self.extra_modules(item)
 
 
-def _views_tensors(views: list[Views], device: torch.device) -> dict[str, torch.Tensor]:
+# ------------------------------------------------------------------------------ inputs
+
+
+def pair_input(views0: Views, views1: Views) -> PairInput:
+    check_pair(views0, views1, "views1")
+    return PairInput(views0=views0, views1=views1)
+
+
+def flow_input(views0: Views, views1: Views, stabilise: str) -> FlowInput:
+    """stabilise: "egomotion" (the bundle's estimate), "poses" (the views' world_T_cam, which must then be
+    given) or "none" (the flow carries the camera's motion)."""
+    check_pair(views0, views1, "views1")
+    if stabilise not in STABILISE:
+        raise InvalidInput("stabilise", f"must be one of {', '.join(STABILISE)}, got {stabilise!r}")
+    if stabilise == "poses":
+        for name, views in (("views0", views0), ("views1", views1)):
+            require_poses(views, f"{name}[0].world_T_cam", "stabilise=poses brings the second instant into the first with the "
+                                       "cameras' poses; send both instants' world_T_cam, or stabilise=egomotion | none")
+    return FlowInput(views0=views0, views1=views1, stabilise=stabilise)
+
+
+def moving_interval(views0: Views, views1: Views, *, modules: Sequence[str], frame_dt: float,
+                    pose_fields: tuple[str, str] = ("views0[0].world_T_cam", "views1[0].world_T_cam"),
+                    time_field: str = "views1") -> float:
+    """Seconds from views0 to views1 (validation.pair_interval: from their timestamps), after refusing what a
+    moving-object pair cannot answer without guessing: a bundle without an egomotion module (`modules`: the
+    bundle's) stabilises with the poses, which must then be given. The stream step checks its pairs here too."""
+    if "egomotion" not in modules:
+        for views, field in zip((views0, views1), pose_fields):
+            require_poses(views, field, "this bundle has no egomotion module, so moving objects are stabilised "
+                                        "with the cameras' poses; send both instants' world_T_cam")
+    return pair_interval(views0, views1, frame_dt=frame_dt, field1=time_field)
+
+
+def moving_input(views0: Views, views1: Views, *, min_score: float, frame_dt: float,
+                 modules: Sequence[str]) -> MovingInput:
+    check_pair(views0, views1, "views1")
+    return MovingInput(views0=views0, views1=views1, min_score=min_score,
+                       dt=moving_interval(views0, views1, modules=modules, frame_dt=frame_dt))
+
+
+# ------------------------------------------------------------------------------ converters
+
+
+def views_tensors(views: Sequence[Views], device: torch.device) -> dict[str, torch.Tensor]:
     """B requests' Views -> rgb B×V×3×H×W in [0,1], depth B×V×H×W, pix_T_cam / world_T_cam B×V×4×4."""
     rgb = torch.from_numpy(np.stack([v.rgb for v in views])).to(device)  # B×V×H×W×3 uint8
     rgb = rgb.permute(0, 1, 4, 2, 3).float().div_(255.0)                # B×V×3×H×W
@@ -93,35 +158,37 @@ def _views_tensors(views: list[Views], device: torch.device) -> dict[str, torch.
     }
 
 
+def pair_tensors(views0: Sequence[Views], views1: Sequence[Views], device) -> dict[str, torch.Tensor]:
+    """B pairs -> the pair keywords of core.pipeline (rgb0, depth0, ..., world_T_cam1), batched as above."""
+    t0, t1 = views_tensors(views0, device), views_tensors(views1, device)
+    return {**{f"{k}0": v for k, v in t0.items()}, **{f"{k}1": v for k, v in t1.items()}}
+
+
 def _numpy(t: torch.Tensor) -> np.ndarray:
     return t.detach().float().cpu().numpy()
 
 
-def pipeline_function(name: str) -> Callable | None:
-    """`core.pipeline.<name>` (or from one of its submodules); None if this build lacks it."""
-    import importlib
-
-    def function_in(module) -> Callable | None:
-        found = getattr(module, name, None)  # `core.pipeline.detect` may be the submodule, not the function
-        return found if callable(found) and not isinstance(found, types.ModuleType) else None
-
-    found = function_in(importlib.import_module("core.pipeline"))
-    for sub in PIPELINE_SUBMODULES:
-        if found is not None:
-            break
-        try:
-            found = function_in(importlib.import_module(f"core.pipeline.{sub}"))
-        except ModuleNotFoundError as e:
-            if e.name != f"core.pipeline.{sub}":
-                raise
-    return found
+def detections_results(out: dict[str, torch.Tensor], min_scores: Sequence[float], *,
+                       label: str) -> list[DetectionsResult]:
+    """Pipeline boxes B×K×7, scores B×K, valid B×K (, velocities B×K×3) -> per item the valid rows scored
+    at least its min score, best first (velocities zero where the pipeline gives none)."""
+    boxes, scores = _numpy(out["boxes"]), _numpy(out["scores"])
+    valid = out["valid"].cpu().numpy().astype(bool)
+    vel = _numpy(out["velocities"]) if "velocities" in out else np.zeros(boxes.shape[:2] + (3,), np.float32)
+    results = []
+    for b, min_score in enumerate(min_scores):
+        keep = valid[b] & (scores[b] >= min_score)
+        order = np.argsort(-scores[b][keep], kind="stable")
+        results.append(DetectionsResult(boxes=boxes[b][keep][order], scores=scores[b][keep][order],
+                                        velocities=vel[b][keep][order], labels=[label] * int(keep.sum())))
+    return results
 
 
-PIPELINE_SUBMODULES = ("map", "egomotion", "flow", "detect", "moving", "moving_objects")
+# ------------------------------------------------------------------------------ runners
 
 
 def _run_map(bundle, inputs: list[MapInput], device) -> list[MapResult]:
-    out = pipeline_function("map_frames")(bundle, **_views_tensors([i.views for i in inputs], device))
+    out = map_frames(bundle, **views_tensors([i.views for i in inputs], device))
     observed = _numpy(out["observed"])                                 # B×1×Z×Y×X
     occupancy = _numpy(out["occupancy"]) if "occupancy" in out else None  # B×1×Z×Y×X
     heightmap = _numpy(out["heightmap"]) if "heightmap" in out else None  # B×Z×X
@@ -132,76 +199,36 @@ def _run_map(bundle, inputs: list[MapInput], device) -> list[MapResult]:
             for b, item in enumerate(inputs)]
 
 
-def _pair_tensors(inputs: list, device) -> dict[str, torch.Tensor]:
-    t0 = _views_tensors([i.views0 for i in inputs], device)
-    t1 = _views_tensors([i.views1 for i in inputs], device)
-    return {**{f"{k}0": v for k, v in t0.items()}, **{f"{k}1": v for k, v in t1.items()}}
+def _pairs(inputs: list, device) -> dict[str, torch.Tensor]:
+    return pair_tensors([i.views0 for i in inputs], [i.views1 for i in inputs], device)
 
 
 def _run_egomotion(bundle, inputs: list[PairInput], device) -> list[EgomotionResult]:
-    out = _numpy(pipeline_function("estimate_egomotion")(bundle, **_pair_tensors(inputs, device))["cam0_T_cam1"])  # B×4×4
+    out = _numpy(estimate_egomotion(bundle, **_pairs(inputs, device))["cam0_T_cam1"])  # B×4×4
     return [EgomotionResult(cam0_T_cam1=out[b]) for b in range(len(inputs))]
 
 
-def _run_flow(bundle, inputs: list[PairInput], device) -> list[FlowResult]:
-    out = _numpy(pipeline_function("estimate_flow")(bundle, **_pair_tensors(inputs, device))["flow"])  # B×3×Z×Y×X
+def _run_flow(bundle, inputs: list[FlowInput], device) -> list[FlowResult]:
+    # one stabilisation per batch: it is part of the batch key
+    out = _numpy(estimate_flow(bundle, **_pairs(inputs, device), stabilize=inputs[0].stabilise)["flow"])  # B×3×Z×Y×X
     return [FlowResult(flow=out[b]) for b in range(len(inputs))]
 
 
-def _split_boxes(out, inputs: list, *, with_velocity: bool) -> list[DetectionsResult]:
-    """Pipeline boxes B×K×7, scores B×K, valid B×K (, velocities B×K×3) -> per-request results.
-
-    A per-item list of {"boxes": K_b×7, "scores": K_b[, "velocities": K_b×3]} is accepted too.
-    """
-    if isinstance(out, (list, tuple)):
-        out = _pad_items(out)
-    boxes, scores = _numpy(out["boxes"]), _numpy(out["scores"])
-    valid = out.get("valid")
-    valid = valid.cpu().numpy().astype(bool) if valid is not None else np.ones(scores.shape, bool)
-    vel = _numpy(out["velocities"]) if with_velocity and "velocities" in out else np.zeros(boxes.shape[:2] + (3,), np.float32)
-    results = []
-    for b, item in enumerate(inputs):
-        keep = valid[b] & (scores[b] >= item.min_score)
-        order = np.argsort(-scores[b][keep], kind="stable")
-        results.append(DetectionsResult(boxes=boxes[b][keep][order], scores=scores[b][keep][order],
-                                        velocities=vel[b][keep][order],
-                                        labels=["moving" if with_velocity else "object"] * int(keep.sum())))
-    return results
-
-
-def _pad_items(items: list[dict]) -> dict[str, torch.Tensor]:
-    """Per-item dicts of K_b rows -> zero-padded B×K tensors with a `valid` mask."""
-    B, K = len(items), max([len(d["scores"]) for d in items] + [0])
-    boxes, scores = torch.zeros(B, K, 7), torch.zeros(B, K)
-    valid, velocities = torch.zeros(B, K, dtype=torch.bool), torch.zeros(B, K, 3)
-    for b, d in enumerate(items):
-        k = len(d["scores"])
-        boxes[b, :k] = torch.as_tensor(d["boxes"], dtype=torch.float32).reshape(k, 7)
-        scores[b, :k] = torch.as_tensor(d["scores"], dtype=torch.float32)
-        valid[b, :k] = True
-        if "velocities" in d:
-            velocities[b, :k] = torch.as_tensor(d["velocities"], dtype=torch.float32).reshape(k, 3)
-    return {"boxes": boxes, "scores": scores, "valid": valid, "velocities": velocities}
-
-
 def _run_detect(bundle, inputs: list[DetectInput], device) -> list[DetectionsResult]:
-    detect = pipeline_function("detect")
-    out = detect(bundle, **_views_tensors([i.views for i in inputs], device),
-                 min_score=min(i.min_score for i in inputs))
-    return _split_boxes(out, inputs, with_velocity=False)
+    out = detect(bundle, **views_tensors([i.views for i in inputs], device), min_score=min(i.min_score for i in inputs))
+    return detections_results(out, [i.min_score for i in inputs], label="object")
 
 
 def _run_moving(bundle, inputs: list[MovingInput], device) -> list[DetectionsResult]:
-    out = pipeline_function("moving_objects")(bundle, **_pair_tensors(inputs, device))
-    return _split_boxes(out, inputs, with_velocity=True)
+    out = moving_objects(bundle, **_pairs(inputs, device), dt=[i.dt for i in inputs])
+    return detections_results(out, [i.min_score for i in inputs], label="moving")
 
 
 ROUTES: dict[str, Route] = {r.name: r for r in (
-    Route("map", ("mapper",), "map_frames", lambda i: ("map", i.views.shape_key, i.features), _run_map),
-    Route("egomotion", ("egomotion",), "estimate_egomotion", lambda i: ("egomotion", i.views0.shape_key),
-          _run_egomotion),
-    Route("flow", ("mapper", "flow"), "estimate_flow", lambda i: ("flow", i.views0.shape_key), _run_flow),
-    Route("detect", ("mapper", "detector"), "detect", lambda i: ("detect", i.views.shape_key), _run_detect),
-    Route("moving_objects", ("mapper", "flow"), "moving_objects", lambda i: ("moving_objects", i.views0.shape_key),
-          _run_moving),
+    Route("map", ("mapper",), lambda i: ("map", i.views.shape_key, i.features), _run_map),
+    Route("egomotion", ("egomotion",), lambda i: ("egomotion", i.views0.shape_key), _run_egomotion),
+    Route("flow", ("mapper", "flow"), lambda i: ("flow", i.views0.shape_key, i.stabilise), _run_flow,
+          extra_modules=lambda i: ("egomotion",) if i.stabilise == "egomotion" else ()),
+    Route("detect", ("mapper", "detector"), lambda i: ("detect", i.views.shape_key), _run_detect),
+    Route("moving_objects", ("mapper", "flow"), lambda i: ("moving_objects", i.views0.shape_key), _run_moving),
 )}

@@ -18,13 +18,14 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 
 from core.errors import BundleError
+from core.pipeline.moving_boxes import DEFAULT_DT
 from services.inference.batching import BatchConfig, BatchStats, MicroBatcher
-from services.inference.errors import ModuleUnavailable, NotReady
+from services.inference.errors import ModuleUnavailable, NotReady, RequestTimeout
 from services.inference.metrics import Metrics
 from services.inference.routes import BOX_FRAME, ROUTES, Route
 
@@ -42,6 +43,12 @@ class RuntimeConfig:
     max_wait_ms: float = 2.0
     max_queue: int = 64
     timeout_s: float = 30.0              # per-request deadline (queue + model)
+    # Seconds per sequence number for moving-object pairs whose frames carry no timestamps (both 0).
+    frame_dt: float = DEFAULT_DT
+
+    def __post_init__(self) -> None:
+        if not self.frame_dt > 0:
+            raise BundleError(f"frame_dt must be positive seconds, got {self.frame_dt}")
 
 
 @dataclass(frozen=True)
@@ -75,14 +82,9 @@ def bundle_version(bundle) -> str:
     return str(getattr(bundle, "version", None) or "unversioned")
 
 
-def _missing(route: Route, bundle) -> list[str]:
-    """What `route` lacks: bundle modules, or the core.pipeline function in this build."""
-    from services.inference.routes import pipeline_function
-
-    missing = [m for m in route.modules if m not in bundle.modules]
-    if not missing and pipeline_function(route.function) is None:
-        missing = [f"core.pipeline.{route.function} (not in this build)"]
-    return missing
+def _missing(route: Route, bundle, item: Any | None = None) -> list[str]:
+    """The bundle modules `route` (for `item`, with its options) needs and `bundle` lacks."""
+    return [m for m in route.needs(item) if m not in bundle.modules]
 
 
 def _load(path: str, device: torch.device) -> _Loaded:
@@ -168,10 +170,10 @@ class Runtime:
                 "loaded_at": self._loaded.loaded_at, "last_reload_error": self.last_reload_error,
                 "meta_json": json.dumps(meta, sort_keys=True, default=str)}
 
-    def require(self, route: str) -> Route:
-        """The route, or ModuleUnavailable if the loaded bundle lacks one of its modules."""
+    def require(self, route: str, item: Any | None = None) -> Route:
+        """The route, or ModuleUnavailable if the loaded bundle lacks one of the modules it (for `item`) needs."""
         r = ROUTES[route]
-        missing = _missing(r, self._loaded.bundle)
+        missing = _missing(r, self._loaded.bundle, item)
         if missing:
             raise ModuleUnavailable(route, missing, self.version)
         return r
@@ -181,21 +183,38 @@ class Runtime:
         """Validated input of `route` -> Answer. Raises the typed errors of services.inference.errors."""
         if not self.ready:
             raise NotReady("the runtime is not ready (starting, reloading state or shutting down)")
-        r = self.require(route)
+        r = self.require(route, item)
         (result, version), stats = await self._batcher.submit(
             r.batch_key(item), item, timeout_s=timeout_s or self.config.timeout_s)
         return Answer(result=result, bundle_version=version, frame=BOX_FRAME, stats=stats)
 
+    async def call_on_model_thread(self, fn: Callable[[], Any], *, timeout_s: float | None = None) -> Any:
+        """fn() on the model thread, in turn with the batches, under inference mode: work that carries state
+        from call to call (a stream's per-camera cache) and so does not batch with other requests."""
+        if not self.ready:
+            raise NotReady("the runtime is not ready (starting, reloading state or shutting down)")
+
+        def run():
+            with torch.inference_mode():
+                return fn()
+
+        future = asyncio.get_running_loop().run_in_executor(self._model_thread, run)
+        timeout = timeout_s or self.config.timeout_s
+        try:
+            return await asyncio.wait_for(future, timeout)
+        except asyncio.TimeoutError:
+            raise RequestTimeout(f"request did not finish within {timeout:g} s") from None
+
     def infer_sync(self, route: str, items: list) -> list:
         """In-process, unqueued call of a whole batch on the caller's thread (benchmarks, tools)."""
-        r = self.require(route)
+        r = self.require(route, items[0] if items else None)
         with torch.inference_mode():
             return r.run(self._loaded.bundle, items, self.device)
 
     def _run_batch(self, key, items: list) -> list:
         loaded = self._loaded  # one bundle for the whole batch, even if a reload swaps meanwhile
         route = ROUTES[key[0]]
-        missing = _missing(route, loaded.bundle)
+        missing = _missing(route, loaded.bundle, items[0])
         if missing:  # a reload removed the module while the request waited
             raise ModuleUnavailable(route.name, missing, loaded.version)
         with torch.inference_mode():

@@ -7,6 +7,8 @@ each route are in services/inference/examples.py.
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field
 
 from services.inference.examples import example_view
@@ -34,7 +36,8 @@ class ImageJSON(BaseModel):
 
 class FrameJSON(BaseModel):
     """One RGB-D view: rgb H×W×3 uint8; depth H×W metres (float32 array) or millimetres (uint16 PNG/array);
-    intrinsics `pix_T_cam` 4×4; camera pose `world_T_cam` 4×4 rigid (identity when absent)."""
+    intrinsics `pix_T_cam` 4×4; camera pose `world_T_cam` 4×4 rigid (identity when absent, which only a
+    lone view of an instant may be: several views are fused by their poses)."""
 
     model_config = ConfigDict(json_schema_extra={"examples": [example_view()]})
     rgb: ImageJSON
@@ -43,7 +46,8 @@ class FrameJSON(BaseModel):
     world_T_cam: Matrix4 | None = None
     camera_id: str = Field("", max_length=256)
     sequence: int = Field(0, ge=0, le=2**63 - 1)
-    timestamp: float = 0.0
+    timestamp: float = Field(0.0, description="capture time, seconds on the source's clock; 0 = none given. "
+                                              "Moving objects take their pair's interval from it")
 
 
 Views = list[FrameJSON]
@@ -60,14 +64,28 @@ class PairRequestJSON(BaseModel):
     views1: Views = Field(min_length=1, max_length=MAX_VIEWS, description="views at t1, same layout")
 
 
+Stabilise = Literal["egomotion", "poses", "none"]
+STABILISE_DOC = ("how t1 is brought into ref0 before the flow compares it with t0: `egomotion` (the bundle's "
+                 "estimate; needs an egomotion module), `poses` (the views' world_T_cam, which must then be given "
+                 "for both instants; the default) or `none` (the flow carries the camera's own motion too)")
+
+
+class FlowRequestJSON(PairRequestJSON):
+    stabilise: Stabilise = Field("poses", description=STABILISE_DOC)
+
+
 class DetectRequestJSON(BaseModel):
     views: Views = Field(min_length=1, max_length=MAX_VIEWS)
     min_score: float = Field(0.0, ge=0.0, le=1.0, description="objectness in [0, 1]")
 
 
 class MovingObjectsRequestJSON(BaseModel):
-    views0: Views = Field(min_length=1, max_length=MAX_VIEWS)
-    views1: Views = Field(min_length=1, max_length=MAX_VIEWS)
+    """Velocities are m/s over the frames' clock: views1's timestamp minus views0's (it must be later); when
+    both are 0, (views1 sequence − views0 sequence, at least 1) × the server's --frame-dt. A bundle without an
+    egomotion module stabilises with the poses, which must then be given."""
+
+    views0: Views = Field(min_length=1, max_length=MAX_VIEWS, description="views at t0; `ref` = views0[0]")
+    views1: Views = Field(min_length=1, max_length=MAX_VIEWS, description="views at t1, same layout")
     min_score: float = Field(-1.0, ge=-1.0, le=1.0, description="center-surround saliency in [−1, 1]")
 
 

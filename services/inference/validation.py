@@ -21,7 +21,8 @@ MAX_DEPTH_M = 1000.0
 
 @dataclass(frozen=True)
 class View:
-    """One validated RGB-D view: rgb H×W×3 uint8, depth H×W float32 metres, 4×4 float32 matrices."""
+    """One validated RGB-D view: rgb H×W×3 uint8, depth H×W float32 metres, 4×4 float32 matrices.
+    `posed`: the client gave world_T_cam (else it is the identity, which only a lone view may leave out)."""
 
     rgb: np.ndarray
     depth: np.ndarray
@@ -30,12 +31,14 @@ class View:
     camera_id: str = ""
     sequence: int = 0
     timestamp: float = 0.0
+    posed: bool = True
 
 
 @dataclass(frozen=True)
 class Views:
     """Views of one instant, stacked: rgb V×H×W×3 uint8, depth V×H×W float32, pix_T_cam and
-    world_T_cam V×4×4 float32. `ref` is the camera of view 0."""
+    world_T_cam V×4×4 float32. `ref` is the camera of view 0. `posed`: every view came with its
+    world_T_cam (always so for more than one view)."""
 
     rgb: np.ndarray
     depth: np.ndarray
@@ -44,6 +47,7 @@ class Views:
     camera_ids: list[str] = dc_field(default_factory=list)
     sequence: int = 0
     timestamp: float = 0.0
+    posed: bool = True
 
     @property
     def shape_key(self) -> tuple[int, int, int]:
@@ -136,28 +140,32 @@ def make_view(*, rgb: np.ndarray, depth: np.ndarray, pix_T_cam, world_T_cam=None
         raise InvalidInput(f"{field}.depth", f"size {depth.shape[0]}×{depth.shape[1]} differs from rgb "
                                              f"{rgb.shape[0]}×{rgb.shape[1]}")
     pix_T_cam = check_intrinsics(pix_T_cam, f"{field}.pix_T_cam")
-    world_T_cam = (np.eye(4, dtype=np.float32) if world_T_cam is None
-                   else check_pose(world_T_cam, f"{field}.world_T_cam"))
+    posed = world_T_cam is not None
+    world_T_cam = check_pose(world_T_cam, f"{field}.world_T_cam") if posed else np.eye(4, dtype=np.float32)
     if not np.isfinite(timestamp):
         raise InvalidInput(f"{field}.timestamp", "must be finite")
     return View(rgb=rgb, depth=depth, pix_T_cam=pix_T_cam, world_T_cam=world_T_cam,
-                camera_id=camera_id, sequence=int(sequence), timestamp=float(timestamp))
+                camera_id=camera_id, sequence=int(sequence), timestamp=float(timestamp), posed=posed)
 
 
 def stack_views(views: list[View], field: str) -> Views:
-    """Views of one instant -> Views (all the same size, 1..MAX_VIEWS of them)."""
+    """Views of one instant -> Views (all the same size, 1..MAX_VIEWS of them; with more than one, each
+    with its world_T_cam: fusing views needs where each camera stood, and the identity would be a guess)."""
     if not 1 <= len(views) <= MAX_VIEWS:
         raise InvalidInput(field, f"need 1..{MAX_VIEWS} views, got {len(views)}")
     size = views[0].depth.shape
     for i, v in enumerate(views):
         if v.depth.shape != size:
             raise InvalidInput(f"{field}[{i}]", f"size {v.depth.shape} differs from view 0's {size}")
+        if len(views) > 1 and not v.posed:
+            raise InvalidInput(f"{field}[{i}].world_T_cam", f"missing: each of the {len(views)} views of one "
+                                                            "instant needs its camera pose to be fused with the others")
     return Views(rgb=np.stack([v.rgb for v in views]),              # V×H×W×3
                  depth=np.stack([v.depth for v in views]),          # V×H×W
                  pix_T_cam=np.stack([v.pix_T_cam for v in views]),  # V×4×4
                  world_T_cam=np.stack([v.world_T_cam for v in views]),
-                 camera_ids=[v.camera_id for v in views],
-                 sequence=views[0].sequence, timestamp=max(v.timestamp for v in views))
+                 camera_ids=[v.camera_id for v in views], sequence=views[0].sequence,
+                 timestamp=max(v.timestamp for v in views), posed=all(v.posed for v in views))
 
 
 def check_pair(views0: Views, views1: Views, field1: str) -> None:
@@ -165,6 +173,25 @@ def check_pair(views0: Views, views1: Views, field1: str) -> None:
     if views0.shape_key != views1.shape_key:
         raise InvalidInput(field1, f"views (V, H, W) = {views1.shape_key} differ from the first "
                                    f"instant's {views0.shape_key}")
+
+
+def pair_interval(views0: Views, views1: Views, *, frame_dt: float, field1: str) -> float:
+    """Seconds from the first instant of a pair to the second: the difference of their timestamps, or —
+    when neither carries one (both 0, the wire's default) — the difference of their sequence numbers (at
+    least 1) times `frame_dt`. Timestamps that do not increase are refused, naming `field1`.timestamp."""
+    t0, t1 = views0.timestamp, views1.timestamp
+    if t0 == 0.0 and t1 == 0.0:
+        return max(1, views1.sequence - views0.sequence) * frame_dt
+    if not t1 > t0:
+        raise InvalidInput(f"{field1}.timestamp", f"{t1!r} s is not after the first instant's {t0!r} s: the "
+                                                  "frames' clock must advance (or leave both timestamps 0)")
+    return t1 - t0
+
+
+def require_poses(views: Views, field: str, why: str) -> None:
+    """Refuse, naming `field` (a world_T_cam), views whose poses were not given when `why` needs them."""
+    if not views.posed:
+        raise InvalidInput(field, f"missing: {why}")
 
 
 def check_min_score(value: float, field: str = "min_score", *, low: float = 0.0) -> float:

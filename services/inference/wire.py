@@ -51,9 +51,26 @@ def views_from_json(frames, field: str) -> Views:
 # ---------------------------------------------------------------------------------- .npz in
 
 
+def _npz_scalar(arrays: dict[str, np.ndarray], name: str, kind: str, default):
+    """An optional scalar member of a .npz body: one number of dtype kind `kind` ("f" or "iu")."""
+    if name not in arrays:
+        return default
+    arr = arrays[name]
+    if arr.size != 1 or arr.dtype.kind not in kind + ("iu" if kind == "f" else ""):
+        raise InvalidInput(name, f"must be one {'number' if kind == 'f' else 'integer'}, got dtype {arr.dtype} "
+                                 f"shape {list(arr.shape)}")
+    value = arr.reshape(()).item()
+    if kind == "f" and not np.isfinite(value):
+        raise InvalidInput(name, f"must be finite, got {value}")
+    if kind == "iu" and value < 0:
+        raise InvalidInput(name, f"must be ≥ 0, got {value}")
+    return value
+
+
 def views_from_npz(arrays: dict[str, np.ndarray], suffix: str = "") -> Views:
     """`.npz` body -> Views. Keys: rgb{s} V×H×W×3 uint8, depth{s} V×H×W (float32 m | uint16 mm),
-    pix_T_cam{s} V×4×4, optional world_T_cam{s} V×4×4; `s` is "" for one instant, "0"/"1" for pairs."""
+    pix_T_cam{s} V×4×4, world_T_cam{s} V×4×4 (optional for one view), and the optional scalars
+    timestamp{s} (seconds) and sequence{s} of the instant; `s` is "" for one instant, "0"/"1" for pairs."""
     names = {k: f"{k}{suffix}" for k in ("rgb", "depth", "pix_T_cam", "world_T_cam")}
     for k in ("rgb", "depth", "pix_T_cam"):
         if names[k] not in arrays:
@@ -63,11 +80,16 @@ def views_from_npz(arrays: dict[str, np.ndarray], suffix: str = "") -> Views:
     if rgb.ndim != 4:
         raise InvalidInput(names["rgb"], f"must have shape V×H×W×3, got {list(rgb.shape)}")
     V = rgb.shape[0]
+    if pose is None and V > 1:
+        raise InvalidInput(names["world_T_cam"], f"missing: each of the {V} views of one instant needs its camera "
+                                                 "pose to be fused with the others")
     for name, arr, ndim in ((names["depth"], depth, 3), (names["pix_T_cam"], K, 3), (names["world_T_cam"], pose, 3)):
         if arr is not None and (arr.ndim != ndim or arr.shape[0] != V):
             raise InvalidInput(name, f"must have {ndim} dims with V={V} first, got {list(arr.shape)}")
+    timestamp = _npz_scalar(arrays, f"timestamp{suffix}", "f", 0.0)
+    sequence = _npz_scalar(arrays, f"sequence{suffix}", "iu", 0)
     views = [make_view(rgb=rgb[v], depth=depth[v], pix_T_cam=K[v], world_T_cam=None if pose is None else pose[v],
-                       field=f"views{suffix}[{v}]") for v in range(V)]
+                       field=f"views{suffix}[{v}]", sequence=sequence, timestamp=timestamp) for v in range(V)]
     return stack_views(views, f"views{suffix}")
 
 

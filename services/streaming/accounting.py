@@ -1,12 +1,14 @@
 """Per-camera accounting of a bridge: every received sample ends in exactly one bucket.
 
-    received = processed + dropped + malformed + pending
+    received = processed + dropped + malformed + processing_errors + pending
 
 `pending` counts frames received but not yet in a final bucket: at most 2 per camera (one being
-processed, the newest waiting in the camera's slot), so once the stream is idle the identity reads
-received = processed + dropped + malformed. `dropped` counts frames skipped because a
-newer one arrived first (the bridge was behind), plus duplicate and out-of-order frames; `malformed`
-counts payloads that did not decode or failed validation (and a processing error on a frame).
+processed, the newest waiting in the camera's slot), so once the stream is idle the identity holds
+without it. `dropped` counts frames skipped because a newer one arrived first (the bridge was behind),
+plus duplicate and out-of-order frames; `malformed` counts payloads that did not decode, failed
+validation, or that the processor refused as input (e.g. a timestamp before the previous frame's);
+`processing_errors` counts frames whose processing failed for any other reason (a bug or a model error,
+not the sender's mistake, so kept apart from `malformed`).
 """
 
 from __future__ import annotations

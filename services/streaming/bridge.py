@@ -3,9 +3,11 @@
 Threads: zenoh delivers samples on its own callback thread; the callback only counts the sample
 and parks it in its camera's one-frame slot (replacing — and counting as dropped — a frame the
 worker had not reached yet), so a slow model never backs up zenoh and memory stays bounded. One
-worker thread takes the newest frame of each camera in turn, decodes it, checks its sequence,
-runs the processor and publishes. Every received sample ends in exactly one accounting bucket
-(see accounting.py), malformed payloads and processor errors included; nothing kills the worker.
+worker thread takes the newest frame of each camera in turn, decodes it, checks its sequence
+(`CameraState.verdict`: duplicates and out-of-order frames are dropped, as gRPC StreamMovingObjects drops
+them), runs the processor and publishes. Every received sample ends in exactly one accounting bucket
+(see accounting.py): a payload that does not decode, or that the processor refuses as input, is malformed;
+any other failure while processing counts as a processing error; nothing kills the worker.
 
 Publisher restarts are recognised by the publisher id each camera puts in the sample attachment
 (`pub=<id>`): a new id resets that camera's state instead of reading as out-of-order frames.
@@ -19,11 +21,12 @@ import logging
 import threading
 import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Protocol
 
 import zenoh
 
+from services.inference.camera_state import CameraState
 from services.streaming import keys
 from services.streaming.accounting import Accounting
 from services.streaming.session import ZenohOptions, open_session
@@ -45,16 +48,6 @@ class Parked:
 
 
 @dataclass
-class CameraState:
-    """What the bridge remembers per camera between frames."""
-
-    publisher_id: str | None = None
-    last_sequence: int | None = None
-    previous: object | None = None          # the last processed decoded frame
-    extra: dict = field(default_factory=dict)  # processor-owned state (features, pose, ...)
-
-
-@dataclass
 class Outputs:
     """What processing one frame produced: encoded payloads to publish (None = nothing)."""
 
@@ -68,7 +61,8 @@ class FrameProcessor(Protocol):
         `.camera_id`, `.sequence` and `.timestamp` (source time, seconds since the epoch)."""
 
     def process(self, camera: str, state: CameraState, frame: object) -> Outputs:
-        """Run the models on `frame` given the camera's state (state.previous is the last frame)."""
+        """Run the models on `frame` given the camera's state (state.previous is the last frame); raise
+        MalformedFrame for a frame it refuses as input."""
 
     # Optional: `prepare(camera, state)` runs on the worker when no frame waits (after a frame was
     # processed and state.previous set), and `stats() -> dict` adds to the status JSON.
@@ -201,7 +195,7 @@ class Bridge:
                 self._handle(camera, parked)
             except Exception:  # the worker must survive anything a frame can cause
                 log.exception("processing a frame of camera %s failed", camera)
-                self.accounting.update(camera, malformed=1, processing_errors=1)
+                self.accounting.update(camera, processing_errors=1)
             finally:
                 # Leaves `pending` only now that the frame sits in its final bucket, so the
                 # identity received = processed + dropped + malformed + pending holds at every instant.
@@ -242,14 +236,18 @@ class Bridge:
             state = self._states[camera] = CameraState()
         state.publisher_id = publisher
         seq = int(frame.sequence)
-        if state.last_sequence is not None and seq <= state.last_sequence:
-            kind = "dropped_duplicate" if seq == state.last_sequence else "dropped_out_of_order"
-            log.info("camera %s: %s frame %d (last %d)", camera, kind.split("_", 1)[1], seq, state.last_sequence)
-            self.accounting.update(camera, dropped=1, **{kind: 1})
+        kind = state.verdict(seq)
+        if kind is not None:
+            log.info("camera %s: %s frame %d (last %d)", camera, kind, seq, state.last_sequence)
+            self.accounting.update(camera, dropped=1, **{f"dropped_{kind}": 1})
             return
-        outputs = self.processor.process(camera, state, frame)
-        state.previous = frame
-        state.last_sequence = seq
+        try:
+            outputs = self.processor.process(camera, state, frame)
+        except MalformedFrame as e:  # decoded, but the processor cannot answer it (e.g. its clock went back)
+            log.warning("malformed frame %d from camera %s: %s", seq, camera, e)
+            self.accounting.update(camera, malformed=1)
+            return
+        state.advance(frame)
         self._publish(keys.moving_objects(camera), outputs.moving_objects)
         self._publish(keys.egomotion(camera), outputs.egomotion)
         self.accounting.update(camera, processed=1)

@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from services.inference.client import Frames, GrpcClient, RestClient  # noqa: E402
-from services.inference.routes import DetectInput, MapInput, MovingInput, PairInput  # noqa: E402
+from services.inference.routes import DetectInput, FlowInput, MapInput, MovingInput, PairInput  # noqa: E402
 from services.inference.runtime import Runtime, RuntimeConfig  # noqa: E402
 from services.inference.validation import make_view, stack_views  # noqa: E402
 from tests.integration.serve_support import ServerProcess, make_bundle, sample_frames  # noqa: E402
@@ -60,6 +60,8 @@ def _inproc_item(route: str, f0: Frames, f1: Frames):
         return DetectInput(views=_views(f0))
     if route == "moving_objects":
         return MovingInput(views0=_views(f0), views1=_views(f1))
+    if route == "flow":
+        return FlowInput(views0=_views(f0), views1=_views(f1))  # stabilised with the poses, as the client's default
     return PairInput(views0=_views(f0), views1=_views(f1))
 
 

@@ -164,9 +164,11 @@ def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
     return {
         "preset": preset, "rate_hz": args.rate, "threads": args.threads,
         "sent": counts.get("received"), "processed": counts.get("processed"), "dropped": counts.get("dropped"),
-        "malformed": counts.get("malformed"), "pending": counts.get("pending"),
+        "malformed": counts.get("malformed"), "processing_errors": counts.get("processing_errors"),
+        "pending": counts.get("pending"),
         "identity_holds": counts.get("received") == (counts.get("processed", 0) + counts.get("dropped", 0)
-                                                      + counts.get("malformed", 0) + counts.get("pending", 0)),
+                                                      + counts.get("malformed", 0) + counts.get("processing_errors", 0)
+                                                      + counts.get("pending", 0)),
         "detections_received": len(lines),
         "sustained_fps": round((len(lines) - 1) / span, 2) if len(lines) > 1 and span > 0 else None,
         "e2e_ms_p50": round(float(np.percentile(e2e, 50)), 1) if e2e.size else None,

@@ -50,9 +50,10 @@ def test_main_job_runs_every_step(tmp_path):
     # 6. the bridge processed frames and its accounting balanced
     line = next(l for l in log.splitlines() if "bridge accounting for cam0" in l)
     numbers = dict(part.strip().rsplit(" ", 1) for part in line.split(":", 1)[1].split(";")[0].split(","))
-    received, processed, dropped, malformed = (int(numbers[k]) for k in ("received", "processed", "dropped", "malformed"))
-    assert received == 16 and processed >= 2 and malformed == 0
-    assert received == processed + dropped + malformed
+    received, processed, dropped, malformed, errors = (
+        int(numbers[k]) for k in ("received", "processed", "dropped", "malformed", "errors"))
+    assert received == 16 and processed >= 2 and malformed == errors == 0
+    assert received == processed + dropped + malformed + errors
     # ... and, with the viz extra, `stream view` recorded one detections entry per processed frame
     import importlib.util
     if importlib.util.find_spec("rerun") is not None:

@@ -29,8 +29,8 @@ def make_bundle(out_dir: Path, *, preset_name: str = "tiny", kinds: tuple[str, .
                 note: str = "") -> Path:
     """A real bundle (core.bundle.save_bundle) over freshly initialised modules of `preset_name`.
 
-    `kinds` picks the modules (default: every one core can build today). Random weights are fine:
-    these tests check the service, not the models.
+    `kinds` picks the modules (default: every one the training tasks export, i.e. a full bundle).
+    Random weights are fine: these tests check the service, not the models.
     """
     import torch
 
@@ -50,16 +50,12 @@ def fresh_modules(preset, kinds: tuple[str, ...] | None = None) -> dict:
 
     modules = {}
     for name in TASKS:
-        try:
-            task = build_task(name, preset)
-        except (ImportError, NotImplementedError):  # a task whose parts have not landed yet
-            continue
-        for kind, module in task.exported_modules().items():
+        for kind, module in build_task(name, preset).exported_modules().items():
             modules.setdefault(kind, module)
     if kinds is not None:
         missing = set(kinds) - set(modules)
         if missing:
-            raise LookupError(f"core cannot build module(s) {sorted(missing)} yet")
+            raise LookupError(f"no training task exports module(s) {sorted(missing)}")
         modules = {k: v for k, v in modules.items() if k in kinds}
     return modules
 
@@ -70,7 +66,8 @@ def intrinsics(H: int, W: int) -> np.ndarray:
 
 
 def sample_frames(preset_name: str = "tiny", *, views: int = 2, seed: int = 0):
-    """client.Frames of a plausible scene: ground plane depth, random colours, cameras turned about Y."""
+    """client.Frames of a plausible scene: ground plane depth, random colours, cameras turned about Y; the
+    frame of `seed` is sequence `seed`, stamped 12.5 + 0.2·seed s."""
     from core.presets import get_preset
     from services.inference.client import Frames
 
@@ -89,7 +86,8 @@ def sample_frames(preset_name: str = "tiny", *, views: int = 2, seed: int = 0):
         poses.append(T)
     return Frames(rgb=rng.integers(0, 256, (views, H, W, 3), dtype=np.uint8),
                   depth=np.stack([depth] * views), pix_T_cam=np.stack([K] * views),
-                  world_T_cam=np.stack(poses), camera_id="cam0", sequence=1, timestamp=12.5)
+                  world_T_cam=np.stack(poses), camera_id="cam0", sequence=seed,
+                  timestamp=12.5 + 0.2 * seed)  # a later seed is a later frame: pairs (seed, seed + k) advance
 
 
 class ServerProcess:

@@ -1,5 +1,7 @@
-"""A real `n3dmap serve` process: every route and RPC, health + reflection, bad inputs, concurrency,
-OpenAPI fuzzing. Routes whose module the bundle lacks must answer 404 / UNIMPLEMENTED."""
+"""A real `n3dmap serve` process: every route and RPC of a full bundle answering what core.pipeline answers
+for the same inputs (REST .npz and JSON bodies, gRPC, the gRPC stream), health + reflection, bad inputs and
+each refusal naming its field, concurrency, OpenAPI fuzzing. A bundle without some modules answers those
+routes 404 / UNIMPLEMENTED."""
 
 from __future__ import annotations
 
@@ -23,12 +25,31 @@ ROUTES = {"map": "/v1/map", "egomotion": "/v1/egomotion", "flow": "/v1/flow", "d
           "moving_objects": "/v1/moving-objects"}
 
 
+ATOL = 1e-4
+MOVERS_SEED = 1  # a synthetic scene whose moving cars the untrained full bundle finds (3 boxes over 0.2 s)
+
+
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("serve")
     bundle = make_bundle(tmp / "bundle")
     with ServerProcess(bundle, "--max-wait-ms", "20", log_path=tmp / "server.log") as s:
+        s.bundle = bundle
         yield s
+
+
+@pytest.fixture(scope="module")
+def core_bundle(server):
+    """The server's bundle, loaded in this process: the reference answers come from core.pipeline on it."""
+    import torch
+
+    from core.bundle import load_bundle
+
+    torch.set_num_threads(1)  # as the server (--threads 1)
+    bundle = load_bundle(server.bundle, "cpu")
+    for module in bundle.modules.values():
+        module.eval()
+    return bundle
 
 
 @pytest.fixture(scope="module")
@@ -45,55 +66,119 @@ def grpc_client(server):
         yield c
 
 
-def _call(client, route: str, f0, f1):
-    return {"map": lambda: client.map(f0, features=True), "egomotion": lambda: client.egomotion(f0, f1),
-            "flow": lambda: client.flow(f0, f1), "detect": lambda: client.detect(f0),
-            "moving_objects": lambda: client.moving_objects(f0, f1)}[route]()
+def movers(count: int = 3, *, stamps=None):
+    """`count` consecutive single-view client.Frames of a synthetic scene with moving cars (camera cam0,
+    sequence i, timestamp stamps[i], default 100 + 0.2·i)."""
+    from services.inference.client import Frames
+    from services.streaming.sources import synthetic_frames
+
+    source = synthetic_frames(preset_name="tiny", seed=MOVERS_SEED, frames_per_episode=8)
+    stamps = [100.0 + 0.2 * i for i in range(count)] if stamps is None else stamps
+    return [Frames(rgb=f["rgb"], depth=f["depth"], pix_T_cam=f["pix_T_cam"], world_T_cam=f["world_T_cam"],
+                   camera_id="cam0", sequence=i, timestamp=stamps[i]) for i, f in zip(range(count), source)]
 
 
-def _check_answer(route: str, out: dict, grid: dict, version: str, modules: list[str]) -> None:
-    assert out["info"]["bundle_version"] == version and out["info"]["frame"] == "ref"
-    Z, Y, X = grid["Z"], grid["Y"], grid["X"]
-    if route == "map":
-        assert out["observed"].shape == (Z, Y, X) and set(np.unique(out["observed"])) <= {0.0, 1.0}
-        assert out["features"].shape[1:] == (Z, Y, X) and np.isfinite(out["features"]).all()
-        if "occupancy" in modules:
-            assert out["occupancy"].shape == (Z, Y, X) and out["heightmap"].shape == (Z, X)
-            assert ((out["occupancy"] >= 0) & (out["occupancy"] <= 1)).all()
-    elif route == "egomotion":
-        T = out["cam0_T_cam1"]
-        assert T.shape == (4, 4) and np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-3)
-    elif route == "flow":
-        assert out["flow"].shape == (3, Z, Y, X)
-    else:
-        assert out["frame"] == "ref" and out["bundle_version"] == version and out["boxes"].shape[1] == 7
-        assert len(out["scores"]) == len(out["boxes"]) == len(out["velocities"])
+def core_inputs(frames, suffix: str = "") -> dict:
+    """client.Frames -> the batched tensors core.pipeline takes (B = 1), written out here, not the service's."""
+    import torch
+
+    f = frames.batched()
+    out = {"rgb": torch.from_numpy(np.asarray(f.rgb, np.uint8)[None]).permute(0, 1, 4, 2, 3).float() / 255.0,
+           "depth": torch.from_numpy(np.asarray(f.depth, np.float32)[None]),
+           "pix_T_cam": torch.from_numpy(np.asarray(f.pix_T_cam, np.float32)[None]),
+           "world_T_cam": torch.from_numpy(np.asarray(f.world_T_cam, np.float32)[None])}
+    return {k + suffix: v for k, v in out.items()}
 
 
-@pytest.mark.parametrize("transport", ["rest-npz", "grpc"])
-def test_every_route_answers_or_says_the_module_is_absent(server, rest, grpc_client, transport):
-    from services.inference.client import GrpcClient, RestClient, ServiceCallError
+def core_boxes(out: dict, min_score: float) -> dict:
+    """core.pipeline's padded boxes of item 0 -> the valid rows scored ≥ min_score, best first (numpy)."""
+    import torch
+
+    keep = out["valid"][0] & (out["scores"][0] >= min_score)
+    order = torch.argsort(-out["scores"][0][keep], stable=True)
+    rows = {k: out[k][0][keep][order].numpy() for k in ("boxes", "scores")}
+    rows["velocities"] = out["velocities"][0][keep][order].numpy() if "velocities" in out else np.zeros((len(order), 3))
+    return rows
+
+
+def assert_boxes(got: dict, want: dict) -> None:
+    assert got["boxes"].shape == want["boxes"].shape, (got["boxes"].shape, want["boxes"].shape)
+    for key in ("boxes", "scores", "velocities"):
+        np.testing.assert_allclose(got[key], want[key], atol=ATOL, err_msg=key)
+
+
+@pytest.fixture(scope="module")
+def expected(core_bundle):
+    """What core.pipeline answers for the movers pair, route by route."""
+    import torch
+
+    from core.pipeline import detect, estimate_egomotion, estimate_flow, map_frames, moving_objects
+
+    f0, f1 = movers(2)
+    pair = {**core_inputs(f0, "0"), **core_inputs(f1, "1")}
+    with torch.no_grad():
+        out = {"map": {k: v[0].numpy() for k, v in map_frames(core_bundle, **core_inputs(f0)).items()},
+               "egomotion": estimate_egomotion(core_bundle, **pair)["cam0_T_cam1"][0].numpy(),
+               "flow": {mode: estimate_flow(core_bundle, **pair, stabilize=mode)["flow"][0].numpy()
+                        for mode in ("poses", "egomotion", "none")},
+               "detect": core_boxes(detect(core_bundle, **core_inputs(f0)), 0.0),
+               "moving_objects": core_boxes(moving_objects(core_bundle, **pair, dt=f1.timestamp - f0.timestamp), -1.0)}
+    assert len(out["moving_objects"]["boxes"]) > 0 and len(out["detect"]["boxes"]) > 0  # boxes to compare
+    return out
+
+
+@pytest.mark.parametrize("transport", ["rest-npz", "rest-json", "grpc"])
+def test_every_route_of_a_full_bundle_answers_as_core_pipeline(server, rest, grpc_client, expected, transport):
+    from services.inference.client import RestClient
+    from services.inference.routes import ROUTES as SERVED
 
     models = rest.models()
-    f0, f1 = sample_frames(views=1, seed=0), sample_frames(views=1, seed=1)
-    if transport == "grpc":
-        client = grpc_client
-    else:
-        client = RestClient(server.url, encoding=transport.split("-")[1])
+    assert set(models["routes"]) == set(SERVED) == set(ROUTES)  # a full bundle serves every route
+    f0, f1 = movers(2)
+    client = grpc_client if transport == "grpc" else RestClient(server.url, encoding=transport.split("-")[1])
     try:
-        for route in ROUTES:
-            if route in models["routes"]:
-                _check_answer(route, _call(client, route, f0, f1), models["grid"], models["bundle_version"],
-                              models["modules"])
-            else:
-                with pytest.raises(ServiceCallError) as e:
-                    _call(client, route, f0, f1)
-                assert e.value.error == "module_unavailable" and route in e.value.detail
-                assert e.value.status in (404, "UNIMPLEMENTED")
+        got = client.map(f0, features=True)
+        assert got["info"]["bundle_version"] == models["bundle_version"] and got["info"]["frame"] == "ref"
+        for key in ("observed", "occupancy", "heightmap"):
+            np.testing.assert_allclose(got[key], expected["map"][key][0] if key != "heightmap" else expected["map"][key],
+                                       atol=ATOL, err_msg=key)
+        np.testing.assert_allclose(got["features"], expected["map"]["features"], atol=ATOL)
+        np.testing.assert_allclose(client.egomotion(f0, f1)["cam0_T_cam1"], expected["egomotion"], atol=ATOL)
+        for mode, flow in expected["flow"].items():
+            np.testing.assert_allclose(client.flow(f0, f1, stabilise=mode)["flow"], flow, atol=ATOL, err_msg=mode)
+        np.testing.assert_allclose(client.flow(f0, f1)["flow"], expected["flow"]["poses"], atol=ATOL)  # the default
+        assert_boxes(client.detect(f0), expected["detect"])
+        moving = client.moving_objects(f0, f1)
+        assert moving["frame"] == "ref" and moving["sequence"] == 1 and moving["source_timestamp"] == f1.timestamp
+        assert_boxes(moving, expected["moving_objects"])
     finally:
-        if not isinstance(client, GrpcClient):
+        if isinstance(client, RestClient):
             client.close()
-    assert "map" in models["routes"]
+
+
+def test_velocities_follow_the_frames_clock(server, rest, grpc_client, core_bundle):
+    """The same pair stamped 0.2 s and 0.4 s apart answers what core.pipeline answers over 0.2 s and 0.4 s
+    (the speed threshold and the velocities scale with the interval); unstamped (both 0), it spans
+    (sequence1 − sequence0) × --frame-dt (0.2 s by default)."""
+    import torch
+
+    from core.pipeline import moving_objects
+
+    f0, f1 = movers(2, stamps=[0.0, 0.2])
+    pair = {**core_inputs(f0, "0"), **core_inputs(f1, "1")}
+    answers = {}
+    for dt in (0.2, 0.4):
+        f1.timestamp = dt
+        with torch.no_grad():
+            want = core_boxes(moving_objects(core_bundle, **pair, dt=dt), -1.0)
+        for client in (rest, grpc_client):
+            answers[dt] = client.moving_objects(f0, f1)
+            assert_boxes(answers[dt], want)
+    assert answers[0.2]["boxes"].shape != answers[0.4]["boxes"].shape or not np.allclose(
+        answers[0.2]["velocities"], answers[0.4]["velocities"])
+    f0.timestamp, f1.timestamp, f0.sequence, f1.sequence = 0.0, 0.0, 3, 5
+    for client in (rest, grpc_client):
+        assert_boxes(client.moving_objects(f0, f1), answers[0.4])
 
 
 @pytest.mark.parametrize("encoding,png", [("json", False), ("png", True)])
@@ -146,19 +231,34 @@ def test_reflection_lists_and_describes_the_service(server):
         assert {"Map", "Egomotion", "Flow", "Detect", "MovingObjects", "Models", "StreamMovingObjects"} <= methods
 
 
-def test_stream_answers_each_frame(server, grpc_client):
+def test_stream_follows_the_bridge_rules_and_answers_as_core_pipeline(server, grpc_client, core_bundle):
+    """One answer per frame processed: a camera's first frame has no boxes; a duplicate and an out-of-order
+    frame get no answer (the bridge drops them); every other answer equals core.pipeline.moving_objects for
+    (the previous processed frame, this one) over their timestamps' interval."""
+    import copy
+
+    import torch
+
+    from core.pipeline import moving_objects
     from services.inference.client import ServiceCallError
 
-    frames = [sample_frames(views=1, seed=s) for s in range(3)]
-    for i, f in enumerate(frames):
-        f.sequence = i
-    if "moving_objects" not in grpc_client.models()["routes"]:
-        with pytest.raises(ServiceCallError, match="module"):
-            list(grpc_client.stream_moving_objects(frames))
-        return
-    out = list(grpc_client.stream_moving_objects(frames))
+    frames = movers(3, stamps=[100.0, 100.2, 100.6])
+    duplicate, older = copy.copy(frames[1]), copy.copy(frames[0])
+    out = list(grpc_client.stream_moving_objects([frames[0], frames[1], duplicate, older, frames[2]]))
     assert [d["sequence"] for d in out] == [0, 1, 2] and len(out[0]["boxes"]) == 0
     assert all(d["frame"] == "ref" and d["camera_id"] == "cam0" for d in out)
+    boxes = 0
+    for before, now, answer in zip(frames, frames[1:], out[1:]):
+        with torch.no_grad():
+            want = moving_objects(core_bundle, **core_inputs(before, "0"), **core_inputs(now, "1"),
+                                  dt=now.timestamp - before.timestamp)
+        assert_boxes(answer, core_boxes(want, -1.0))
+        boxes += len(answer["boxes"])
+    assert boxes > 0
+    backwards = movers(2, stamps=[100.0, 99.0])
+    with pytest.raises(ServiceCallError) as e:
+        list(grpc_client.stream_moving_objects(backwards))
+    assert e.value.status == "INVALID_ARGUMENT" and e.value.detail.startswith("frame.timestamp")
 
 
 # ------------------------------------------------------------------------------------ bad input
@@ -259,6 +359,66 @@ def test_body_limits_content_types_and_npz_bodies(server):
     assert r.status_code == 422 and r.json()["field"] == "depth"
     r = httpx.post(server.url + "/v1/map", content=b"{not json", headers={"content-type": "application/json"})
     assert r.status_code == 422
+
+
+def test_refusals_name_their_field_on_both_transports(server):
+    """What the service used to guess is refused, naming the field: several views of one instant without
+    their poses, a flow stabilised with poses it was not given, an unknown stabilisation, a pair whose clock
+    goes back."""
+    from services.inference.client import GrpcClient, RestClient, ServiceCallError
+
+    def refused(call, field: str) -> None:
+        with pytest.raises(ServiceCallError) as e:
+            call()
+        assert e.value.error == "invalid_input" and e.value.status in (422, "INVALID_ARGUMENT"), e.value
+        assert e.value.field == field, (field, e.value.field, e.value.detail)
+
+    two = sample_frames(views=2)
+    two.world_T_cam = None
+    lone0, lone1 = sample_frames(views=1, seed=0), sample_frames(views=1, seed=1)
+    lone0.world_T_cam = lone1.world_T_cam = None
+    f0, f1 = movers(2, stamps=[5.0, 4.0])
+    for transport in ("json", "npz", "grpc"):
+        client = GrpcClient(server.target) if transport == "grpc" else RestClient(server.url, encoding=transport)
+        with client:
+            refused(lambda: client.map(two), "world_T_cam" if transport == "npz" else "views[0].world_T_cam")
+            refused(lambda: client.egomotion(two, two), "world_T_cam0" if transport == "npz" else "views0[0].world_T_cam")
+            refused(lambda: client.flow(lone0, lone1), "views0[0].world_T_cam")  # stabilise=poses, the default
+            refused(lambda: client.flow(lone0, lone1, stabilise="sideways"),
+                    "query.stabilise" if transport == "npz" else "stabilise")  # .npz bodies: a query parameter
+            refused(lambda: client.moving_objects(f0, f1), "views1.timestamp")
+            assert client.flow(lone0, lone1, stabilise="none")["flow"].shape[0] == 3  # said so: answered
+    body = {"views0": [_frame_json(lone0)], "views1": [_frame_json(lone1)], "stabilise": "sideways"}
+    r = httpx.post(server.url + "/v1/flow", json=body, timeout=30)
+    assert r.status_code == 422 and r.json()["field"] == "stabilise", r.text
+
+
+def test_a_bundle_without_egomotion_refuses_what_it_would_guess(tmp_path):
+    """Mapper, flow and occupancy only: egomotion and detect are 404 / UNIMPLEMENTED; flow stabilised by
+    egomotion too; moving objects are stabilised with the poses, so frames without them are refused."""
+    from services.inference.client import GrpcClient, RestClient, ServiceCallError
+
+    bundle = make_bundle(tmp_path / "bundle", kinds=("mapper", "flow", "occupancy"))
+    f0, f1 = movers(2)
+    lone0, lone1 = movers(2)
+    lone0.world_T_cam = lone1.world_T_cam = None
+    with ServerProcess(bundle, log_path=tmp_path / "server.log") as server, \
+            RestClient(server.url) as rest, GrpcClient(server.target) as grpc_client:
+        assert set(rest.models()["routes"]) == {"map", "flow", "moving_objects"}
+        for client in (rest, grpc_client):
+            for call, missing in ((lambda: client.egomotion(f0, f1), "egomotion"), (lambda: client.detect(f0), "detector"),
+                                  (lambda: client.flow(f0, f1, stabilise="egomotion"), "egomotion")):
+                with pytest.raises(ServiceCallError) as e:
+                    call()
+                assert e.value.error == "module_unavailable" and missing in e.value.detail
+                assert e.value.status in (404, "UNIMPLEMENTED")
+            with pytest.raises(ServiceCallError) as e:
+                client.moving_objects(lone0, lone1)
+            assert e.value.error == "invalid_input" and e.value.field == "views0[0].world_T_cam"
+            assert client.moving_objects(f0, f1)["frame"] == "ref"
+        with pytest.raises(ServiceCallError) as e:
+            list(grpc_client.stream_moving_objects([lone0, lone1]))
+        assert e.value.status == "INVALID_ARGUMENT" and e.value.detail.startswith("frame.world_T_cam")
 
 
 # ------------------------------------------------------------------------------------ load

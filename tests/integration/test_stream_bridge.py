@@ -9,15 +9,16 @@ What this proves:
 - detections arrive: one Detections message per frame the bridge processed (the status's
   `processed` count), with the input's sequence number and the camera's source timestamp, in frame
   `ref`, and the boxes equal what core.pipeline.moving_objects gives for the same pair of frames
-  (the previous processed frame and this one; the frames are regenerated here from the same seed);
+  (the previous processed frame and this one, over their timestamps' interval; the frames are regenerated
+  here from the same seed);
 - the detections are moving cars: the bundle's modules are freshly initialised, i.e. the flow and
   egomotion modules are plain correlators (tests/stream_bundles.py), and at least one published box
   lies within 2 m of the centre of a car that truly moves in that pair (ground truth regenerated here).
 - malformed payloads (garbage bytes, a Frame failing validation, a Frame naming another camera) and
   a publisher restart (the camera process stopped and a new one started) do not stop the bridge;
   they are counted, and frames after them are processed;
-- the accounting identity received = processed + dropped + malformed holds once idle, and every
-  sample sent reached `received`;
+- the accounting identity received = processed + dropped + malformed + processing_errors holds once
+  idle (no processing errors), and every sample sent reached `received`;
 - the status queryable and the liveliness token answer; the token goes when the bridge stops.
 """
 
@@ -185,10 +186,9 @@ def test_detections_arrive_and_equal_the_pipeline(stack):
     from core.pipeline import moving_objects
     from services.inference.validation import stack_views
     from services.inference.wire import view_from_proto
-    from services.streaming.processor import views_tensors
+    from services.inference.routes import pair_tensors
     from services.streaming.camera import encode_frame
     from services.streaming.sources import synthetic_frames
-    from core.pipeline.moving import DEFAULT_DT, MovingObjectsConfig
     from core.presets import get_preset
     from core.synthetic import generate_record
 
@@ -208,6 +208,7 @@ def test_detections_arrive_and_equal_the_pipeline(stack):
     finally:
         listener.stop()
     assert sent == 6 and counts["received"] == sent
+    assert counts["processing_errors"] == 0
     assert counts["received"] == counts["processed"] + counts["dropped"] + counts["malformed"]
     assert len(lines) == counts["processed"] >= 2
     seqs = [d["sequence"] for d in lines]
@@ -229,13 +230,10 @@ def test_detections_arrive_and_equal_the_pipeline(stack):
     total_boxes = near_movers = 0
     torch.set_num_threads(1)
     for before, now in zip(lines, lines[1:]):
-        t0 = views_tensors(views[before["sequence"]], torch.device("cpu"))
-        t1 = views_tensors(views[now["sequence"]], torch.device("cpu"))
+        pair = pair_tensors([views[before["sequence"]]], [views[now["sequence"]]], torch.device("cpu"))
         with torch.inference_mode():
-            # a pair across dropped frames spans their intervals (the bridge's --frame-dt, 0.2 s each)
-            span = MovingObjectsConfig(dt=(now["sequence"] - before["sequence"]) * DEFAULT_DT)
-            ref = moving_objects(bundle, **{f"{k}0": v for k, v in t0.items()}, **{f"{k}1": v for k, v in t1.items()},
-                                 config=span)
+            # the pair spans the frames' own clock (the camera stamps each frame when it publishes it)
+            ref = moving_objects(bundle, **pair, dt=now["source_timestamp"] - before["source_timestamp"])
         valid = ref["valid"][0]
         scores = ref["scores"][0][valid].numpy()
         boxes = ref["boxes"][0][valid].numpy()[np.argsort(-scores, kind="stable")]
@@ -307,5 +305,6 @@ def test_bridge_stops_cleanly_and_its_token_goes(stack):
     assert bridge.stop() == 0, bridge.stderr()[-3000:]
     final = json.loads(bridge.stdout().strip().splitlines()[-1])["final_status"]
     for camera, c in final["cameras"].items():
-        assert c["received"] == c["processed"] + c["dropped"] + c["malformed"] + c["pending"], camera
+        assert c["received"] == (c["processed"] + c["dropped"] + c["malformed"] + c["processing_errors"]
+                                 + c["pending"]), camera
     wait_for(lambda: keys.bridge_token(BRIDGE_ID) not in net.alive(), 20, "the liveliness token to go")

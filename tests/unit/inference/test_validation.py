@@ -74,3 +74,49 @@ def test_stack_and_pair_rules():
     with pytest.raises(InvalidInput) as e:
         check_pair(views, stack_views([_view()], "views1"), "views1")
     assert e.value.field == "views1"
+
+
+def test_several_views_of_one_instant_each_need_their_pose():
+    """A lone view may leave world_T_cam out (identity); fused views may not: the identity would be a guess."""
+    assert not stack_views([_view(world_T_cam=None)], "views").posed
+    assert stack_views([_view(), _view()], "views").posed
+    with pytest.raises(InvalidInput) as e:
+        stack_views([_view(), _view(world_T_cam=None)], "views0")
+    assert e.value.field == "views0[1].world_T_cam"
+
+
+def _stamped(timestamp, sequence=0):
+    return stack_views([_view(timestamp=timestamp, sequence=sequence)], "v")
+
+
+def test_pair_interval_reads_the_frames_clock():
+    from services.inference.validation import pair_interval
+
+    assert pair_interval(_stamped(0.0), _stamped(0.4), frame_dt=0.2, field1="views1") == pytest.approx(0.4)
+    assert pair_interval(_stamped(0.0), _stamped(0.2), frame_dt=0.2, field1="views1") == pytest.approx(0.2)
+    # no timestamps (both 0): sequence numbers × frame_dt, at least one interval
+    assert pair_interval(_stamped(0.0, 3), _stamped(0.0, 5), frame_dt=0.1, field1="views1") == pytest.approx(0.2)
+    assert pair_interval(_stamped(0.0, 3), _stamped(0.0, 3), frame_dt=0.1, field1="views1") == pytest.approx(0.1)
+    for t0, t1 in ((5.0, 4.0), (5.0, 5.0), (5.0, 0.0)):
+        with pytest.raises(InvalidInput) as e:
+            pair_interval(_stamped(t0), _stamped(t1), frame_dt=0.2, field1="views1")
+        assert e.value.field == "views1.timestamp"
+
+
+def test_npz_bodies_refuse_unposed_views_and_bad_scalars():
+    from services.inference.wire import views_from_npz
+
+    V = np.zeros((2, 32, 64, 3), np.uint8)
+    body = {"rgb0": V, "depth0": np.full((2, 32, 64), 3.0, np.float32), "pix_T_cam0": np.stack([K, K]).astype(np.float32)}
+    with pytest.raises(InvalidInput) as e:
+        views_from_npz(body, "0")
+    assert e.value.field == "world_T_cam0"
+    posed = {**body, "world_T_cam0": np.stack([_rot_y(0.1), _rot_y(0.2)]).astype(np.float32),
+             "timestamp0": np.float64(1.5), "sequence0": np.uint64(7)}
+    views = views_from_npz(posed, "0")
+    assert views.timestamp == 1.5 and views.sequence == 7 and views.posed
+    for name, value in (("timestamp0", np.float64(np.nan)), ("timestamp0", np.zeros(2)), ("sequence0", np.int64(-1)),
+                        ("sequence0", np.float64(1.0))):
+        with pytest.raises(InvalidInput) as e:
+            views_from_npz({**posed, name: value}, "0")
+        assert e.value.field == name, (name, value)

@@ -29,7 +29,8 @@ def free_port() -> int:
 
 
 class JsonProcessor:
-    """Decodes {"camera_id", "sequence", "timestamp"} JSON; optionally slow, to make the bridge fall behind."""
+    """Decodes {"camera_id", "sequence", "timestamp"[, "fail"]} JSON; optionally slow, to make the bridge fall
+    behind. "fail": "refuse" makes `process` refuse the frame as input (MalformedFrame), "crash" fail."""
 
     def __init__(self, delay_s: float = 0.0) -> None:
         self.delay_s = delay_s
@@ -41,19 +42,29 @@ class JsonProcessor:
         try:
             d = json.loads(payload)
             return SimpleNamespace(camera_id=d["camera_id"], sequence=int(d["sequence"]),
-                                   timestamp=float(d["timestamp"]))
+                                   timestamp=float(d["timestamp"]), fail=d.get("fail"))
         except (ValueError, KeyError, TypeError) as e:
             raise MalformedFrame(f"not a frame: {e}") from None
 
     def process(self, camera, state, frame):
         self.release.wait(timeout=10)
         time.sleep(self.delay_s)
+        if frame.fail == "refuse":
+            raise MalformedFrame("frame.timestamp: not after the previous frame's")
+        if frame.fail == "crash":
+            raise RuntimeError("a bug in the processor")
         self.seen.append((camera, frame.sequence))
         return Outputs(moving_objects=json.dumps({"seq": frame.sequence}).encode(), egomotion=None)
 
 
-def frame(camera: str, seq: int) -> bytes:
-    return json.dumps({"camera_id": camera, "sequence": seq, "timestamp": time.time()}).encode()
+def frame(camera: str, seq: int, **extra) -> bytes:
+    return json.dumps({"camera_id": camera, "sequence": seq, "timestamp": time.time(), **extra}).encode()
+
+
+def balanced(stats: dict) -> bool:
+    """Every received sample is in one bucket (accounting.py)."""
+    return stats["received"] == (stats["processed"] + stats["dropped"] + stats["malformed"]
+                                 + stats["processing_errors"] + stats["pending"])
 
 
 def wait_until(predicate, timeout_s: float = 10.0) -> None:
@@ -100,7 +111,7 @@ def test_accounting_identity_malformed_duplicates_restart(endpoint):
         assert stats["malformed"] == 2
         assert stats["dropped_duplicate"] == 1 and stats["dropped_out_of_order"] == 1
         assert stats["publisher_restarts"] == 1
-        assert stats["received"] == stats["processed"] + stats["dropped"] + stats["malformed"]
+        assert balanced(stats) and stats["pending"] == stats["processing_errors"] == 0
         assert stats["latency_ms"]["count"] == 4 and stats["latency_ms"]["p50"] >= 0
 
         # Status answers over zenoh as JSON; the liveliness token announces the bridge.
@@ -131,13 +142,38 @@ def test_behind_bridge_processes_newest_and_counts_drops(endpoint):
         wait_until(lambda: bridge.status()["cameras"]["cam1"]["received"] == 30)
         mid = bridge.status()["cameras"]["cam1"]
         assert mid["pending"] == 2  # frame 0 in the worker, frame 29 parked; 1..28 replaced
-        assert mid["received"] == mid["processed"] + mid["dropped"] + mid["malformed"] + mid["pending"]
+        assert balanced(mid)
         processor.release.set()
         wait_until(lambda: bridge.status()["cameras"]["cam1"]["pending"] == 0)
         stats = bridge.status()["cameras"]["cam1"]
-        assert stats["received"] == stats["processed"] + stats["dropped"] + stats["malformed"]
+        assert balanced(stats)
         assert stats["dropped_behind"] >= 20           # it skipped what it could not keep up with
         assert processor.seen[-1] == ("cam1", 29)      # ...and processed the newest frame
+        pub.undeclare()
+    finally:
+        client.close()
+        bridge.stop()
+
+
+def test_refused_and_failed_frames_are_counted_apart(endpoint):
+    """A frame the processor refuses as input is malformed; one whose processing fails otherwise is a
+    processing error, not the sender's mistake. Neither advances the camera: the next frame compares with
+    the last one processed."""
+    processor = JsonProcessor()
+    bridge = Bridge(processor=processor, zenoh_options=ZenohOptions(listen=(endpoint,)), bridge_id="t3").start()
+    client = open_session(ZenohOptions(connect=(endpoint,)))
+    try:
+        time.sleep(0.5)
+        pub = client.declare_publisher(keys.rgbd("cam2"), congestion_control=zenoh.CongestionControl.BLOCK)
+        for payload in (frame("cam2", 0), frame("cam2", 1, fail="refuse"), frame("cam2", 2, fail="crash"),
+                        frame("cam2", 3)):
+            pub.put(payload, attachment=b"pub=A")
+            time.sleep(0.05)
+        wait_until(lambda: bridge.status()["cameras"].get("cam2", {}).get("received") == 4
+                   and bridge.status()["cameras"]["cam2"]["pending"] == 0)
+        stats = bridge.status()["cameras"]["cam2"]
+        assert stats["processed"] == 2 and stats["malformed"] == 1 and stats["processing_errors"] == 1
+        assert balanced(stats) and processor.seen == [("cam2", 0), ("cam2", 3)]
         pub.undeclare()
     finally:
         client.close()

@@ -1,38 +1,45 @@
-"""core.pipeline.moving_step and the bridge's RuntimeProcessor give what the inference routes give.
+"""The moving-object step with its cache (core.pipeline.moving_step), its stateless call (moving_objects),
+estimate_flow and the stream processors equal the slow, obvious pair of tests/moving_reference.py.
 
-The reference is the slow, obvious path the bridge used before: for every pair, the runtime's
-`egomotion` route and its `moving_objects` route (which estimates egomotion again and encodes both
-frames from scratch). The fast path reuses the previous frame's encoding (made during idle time by
-`prepare`, or by the previous step) and runs egomotion once. Modules are freshly initialised with
-small random flow weights (an untrained flow module predicts exactly zero), so flow, stabilisation
-and boxes all carry numbers that would differ if a cached tensor were stale or misplaced.
+The fast path reuses the previous frame's encoding (made during idle time by `prepare`, or by the previous
+step), runs egomotion once, shares frame 0's egomotion volume with a volume-input flow module and skips
+frame 1's map when the flow module never reads it. Modules are freshly initialised with small random flow
+weights (an untrained flow module predicts exactly zero), so flow, stabilisation and boxes all carry
+numbers that would differ if a cached tensor were stale or misplaced.
 """
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
 from core.bundle import Bundle, save_bundle
-from core.pipeline import encode_previous, moving_objects, moving_step
+from core.pipeline import encode_previous, estimate_flow, moving_objects, moving_step
 from core.pipeline.egomotion import estimate_egomotion
-from core.pipeline.moving import MovingObjectsConfig
 from core.presets import TINY
 from core.tasks.egomotion import EgomotionTask
 from core.tasks.flow import FlowTask
 from core.tasks.occupancy import OccupancyTask
 from n3dmap.v1 import inference_pb2, types_pb2
 from services.inference import codecs
-from services.inference.routes import MovingInput, PairInput
+from services.inference.camera_state import CameraState
+from services.inference.camera_stream import MovingStream
+from services.inference.errors import InvalidInput
+from services.inference.routes import pair_tensors
 from services.inference.runtime import Runtime, RuntimeConfig
-from services.inference.validation import stack_views
-from services.streaming.bridge import CameraState
+from services.inference.validation import make_view, stack_views
+from services.streaming.bridge import MalformedFrame
 from services.streaming.camera import encode_frame
-from services.streaming.processor import RuntimeProcessor, views_tensors
+from services.streaming.processor import RuntimeProcessor
 from services.streaming.sources import synthetic_frames
+from tests.moving_reference import reference_moving_objects
 
 ATOL = 1e-5
+STEP_S = 0.25  # the frames' clock: 0.25 s apart (exact in binary, so intervals compare exactly)
+KEYS = ("flow", "ref0_T_ref1", "boxes", "scores", "valid", "velocities")
 
 
 @pytest.fixture(autouse=True)
@@ -46,7 +53,7 @@ def fresh_modules(flow_inputs: str = "volume") -> dict:
     with torch.no_grad():
         for p in flow_task.flow.parameters():
             if p.dim() > 1 and not p.any():
-                p.normal_(std=0.3)  # flows of ~0.5 voxels: above the 0.2-voxel speed threshold in places
+                p.normal_(std=0.3)  # flows of ~0.5 voxels: above the speed threshold in places
     torch.manual_seed(1)  # the occupancy head's draw must not depend on how many numbers the flow module took
     occupancy = OccupancyTask.from_preset(TINY).occupancy
     with torch.no_grad():  # a spread of P(occupied) around 0.5, so the occupancy gate keeps some flow
@@ -76,32 +83,38 @@ def frames():
     return [next(source) for _ in range(5)]
 
 
-def decoded(processor, frames):
-    return [processor.decode(encode_frame(f, camera_id="c", sequence=i, timestamp=1000.0 + i))
+def decoded(frames, *, stamped: bool = True):
+    """The frames as the bridge decodes them: sequence i, timestamp 1000 + i·STEP_S (0 = none when not stamped)."""
+    processor = RuntimeProcessor.__new__(RuntimeProcessor)  # decode() needs no runtime
+    return [processor.decode(encode_frame(f, camera_id="c", sequence=i, timestamp=1000.0 + i * STEP_S if stamped else 0.0))
             for i, f in enumerate(frames)]
 
 
-def test_moving_step_equals_moving_objects_and_egomotion(bundle_dir, frames):
+def pair_of(view0, view1) -> dict:
+    return pair_tensors([stack_views([view0], "a")], [stack_views([view1], "b")], torch.device("cpu"))
+
+
+def assert_same(fast: dict, slow: dict, keys=KEYS) -> None:
+    for key in keys:
+        assert fast[key].shape == slow[key].shape, key
+        assert torch.allclose(fast[key].float(), slow[key].float(), atol=ATOL), key
+
+
+def test_moving_step_with_its_cache_equals_the_reference(bundle_dir, frames):
     bundle = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu")).bundle
-    processor = RuntimeProcessor.__new__(RuntimeProcessor)  # decode() needs no runtime
-    views = [stack_views([v], "v") for v in decoded(processor, frames)]
-    tensors = [views_tensors(v, torch.device("cpu")) for v in views]
+    views = decoded(frames)
     previous = None
     for t in range(1, len(frames)):
-        pair = {**{f"{k}0": v for k, v in tensors[t - 1].items()}, **{f"{k}1": v for k, v in tensors[t].items()}}
+        pair = pair_of(views[t - 1], views[t])
         if t == 3:  # the idle-time path: the encoding made ahead of the step
-            previous = encode_previous(bundle, **tensors[t - 1], cached=previous)
+            previous = encode_previous(bundle, **{k[:-1]: v for k, v in pair.items() if k.endswith("0")}, cached=previous)
         timings: dict = {}
-        fast = moving_step(bundle, **pair, previous=previous, timings=timings)
-        slow = moving_objects(bundle, **pair)
-        ego = estimate_egomotion(bundle, **pair)
-        assert not torch.allclose(ego["cam0_T_cam1"], torch.eye(4), atol=1e-3)  # stabilisation matters
+        fast = moving_step(bundle, **pair, previous=previous, dt=STEP_S, timings=timings)
+        slow = reference_moving_objects(bundle, pair, stabilize="egomotion", dt=STEP_S)
+        assert not torch.allclose(slow["cam0_T_cam1"], torch.eye(4), atol=1e-3)  # stabilisation matters
         assert slow["flow"].abs().max() > 0.2 and (slow["flow"] == 0).any()  # flow, gated in places
         assert slow["valid"].any()  # boxes to compare
-        for key in ("flow", "ref0_T_ref1", "boxes", "scores", "valid", "velocities"):
-            assert fast[key].shape == slow[key].shape, key
-            assert torch.allclose(fast[key].float(), slow[key].float(), atol=ATOL), key
-        assert torch.allclose(fast["cam0_T_cam1"], ego["cam0_T_cam1"], atol=ATOL)
+        assert_same(fast, slow, KEYS + ("cam0_T_cam1",))
         assert {"ego_volume", "egomotion", "flow", "boxes"} <= set(timings)
         # frame 1's map is made only for a flow module that compares maps
         assert ("map_current" in timings) == (bundle.modules["flow"].inputs != "volume")
@@ -110,44 +123,72 @@ def test_moving_step_equals_moving_objects_and_egomotion(bundle_dir, frames):
         assert previous.ego_volume is not None and previous.features is None
 
 
+def test_moving_objects_and_estimate_flow_are_the_step_without_a_cache(bundle_dir, frames):
+    bundle = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu")).bundle
+    views = decoded(frames)
+    pair = pair_of(views[1], views[2])
+    for stabilize in ("egomotion", "poses"):
+        slow = reference_moving_objects(bundle, pair, stabilize=stabilize, dt=STEP_S)
+        assert_same(moving_objects(bundle, **pair, stabilize=stabilize, dt=STEP_S), slow)
+        flow = estimate_flow(bundle, **pair, stabilize=stabilize)
+        assert_same(flow, slow, ("flow", "ref0_T_ref1"))
+        assert ("features1" in flow) == (bundle.modules["flow"].inputs != "volume")
+    # "none": frame 1 taken as seen from ref0 — the poses' answer for cameras that both stand at the origin
+    unposed = {**pair, "world_T_cam0": torch.eye(4)[None, None], "world_T_cam1": torch.eye(4)[None, None]}
+    unstabilised = estimate_flow(bundle, **unposed, stabilize="none")
+    assert torch.equal(unstabilised["ref0_T_ref1"], torch.eye(4)[None])
+    assert_same(unstabilised, reference_moving_objects(bundle, unposed, stabilize="poses", dt=STEP_S), ("flow",))
+    moved = estimate_flow(bundle, **pair, stabilize="none")["flow"]
+    assert not torch.allclose(moved, slow["flow"], atol=1e-2)  # with a moving camera the poses do stabilise
+
+
+def test_a_batch_of_pairs_may_span_different_intervals(bundle_dir, frames):
+    """dt per batch item (the routes batch requests whose pairs span different intervals): each item equals
+    its own call, and velocities scale as 1/dt where the speed threshold keeps the same voxels."""
+    bundle = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu")).bundle
+    views = decoded(frames)
+    pairs = [pair_of(views[0], views[1]), pair_of(views[1], views[2])]
+    batch = {k: torch.cat([p[k] for p in pairs]) for k in pairs[0]}
+    together = moving_objects(bundle, **batch, dt=[0.25, 0.5])
+    for b, (pair, dt) in enumerate(zip(pairs, (0.25, 0.5))):
+        alone = reference_moving_objects(bundle, pair, stabilize="egomotion", dt=dt)
+        K = int(alone["valid"][0].sum())
+        assert K > 0 and int(together["valid"][b].sum()) == K
+        for key in ("boxes", "scores", "velocities"):
+            assert torch.allclose(together[key][b, :K], alone[key][0, :K], atol=ATOL), (b, key)
+
+
 def test_moving_step_with_poses_and_without_egomotion(bundle_dir, frames):
     full = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu")).bundle
     bundle = Bundle(preset=TINY, modules={k: m for k, m in full.modules.items() if k != "egomotion"})
-    tensors = [views_tensors(stack_views([v], "v"), torch.device("cpu"))
-               for v in decoded(RuntimeProcessor.__new__(RuntimeProcessor), frames[:2])]
-    pair = {**{f"{k}0": v for k, v in tensors[0].items()}, **{f"{k}1": v for k, v in tensors[1].items()}}
-    fast, slow = moving_step(bundle, **pair), moving_objects(bundle, **pair)
+    pair = pair_of(*decoded(frames[:2]))
+    fast = moving_step(bundle, **pair, dt=STEP_S)
     assert "cam0_T_cam1" not in fast and fast["current"].ego_volume is None
-    for key in ("flow", "ref0_T_ref1", "boxes", "scores"):
-        assert torch.allclose(fast[key], slow[key], atol=ATOL), key
+    assert_same(fast, reference_moving_objects(bundle, pair, stabilize="poses", dt=STEP_S))
 
 
-def test_processor_answers_equal_the_routes(bundle_dir, frames):
-    """The bridge's processor (cache + idle preparation) against the two route calls per pair."""
+def test_processor_answers_equal_the_reference(bundle_dir, frames):
+    """The bridge's processor (cache + idle preparation) against the reference pair and egomotion."""
     runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
     processor = RuntimeProcessor(runtime, min_score=-1.0)
     state = CameraState()
-    views = decoded(processor, frames)
+    views = decoded(frames)
     boxes_seen = 0
     for t, frame in enumerate(views):
         outputs = processor.process("c", state, frame)
         got = types_pb2.Detections.FromString(outputs.moving_objects)
-        assert got.sequence == t and got.source_timestamp == pytest.approx(1000.0 + t) and got.frame == "ref"
+        assert got.sequence == t and got.source_timestamp == 1000.0 + t * STEP_S and got.frame == "ref"
         if t == 0:
             assert outputs.egomotion is None and len(got.boxes) == 0
         else:
-            v0, v1 = stack_views([views[t - 1]], "a"), stack_views([frame], "b")
-            (ego,) = runtime.infer_sync("egomotion", [PairInput(views0=v0, views1=v1)])
-            (moving,) = runtime.infer_sync("moving_objects", [MovingInput(views0=v0, views1=v1, min_score=-1.0)])
+            pair = pair_of(views[t - 1], frame)
+            slow = reference_moving_objects(runtime.bundle, pair, stabilize="egomotion", dt=STEP_S)
             sent = inference_pb2.EgomotionResponse.FromString(outputs.egomotion)
-            np.testing.assert_allclose(codecs.tensor_to_numpy(sent.cam0_T_cam1, "cam0_T_cam1"), ego.cam0_T_cam1,
-                                       atol=ATOL)
-            assert len(got.boxes) == len(moving.scores)
+            np.testing.assert_allclose(codecs.tensor_to_numpy(sent.cam0_T_cam1, "cam0_T_cam1"),
+                                       estimate_egomotion(runtime.bundle, **pair)["cam0_T_cam1"][0], atol=ATOL)
+            _assert_boxes_equal(got, slow)
             boxes_seen += len(got.boxes)
-            for box, ref_box, score in zip(got.boxes, moving.boxes, moving.scores):
-                np.testing.assert_allclose([box.x, box.y, box.z, box.lx, box.ly, box.lz, box.yaw], ref_box, atol=1e-4)
-                assert box.score == pytest.approx(float(score), abs=1e-5)
-        state.previous, state.last_sequence = frame, t
+        state.advance(frame)
         if t % 2 == 0:  # half the steps find the previous frame encoded ahead, half encode it themselves
             processor.prepare("c", state)
             assert state.extra["encoding"].features is not None and state.extra["sequence"] == t
@@ -157,48 +198,77 @@ def test_processor_answers_equal_the_routes(bundle_dir, frames):
     assert stats["idle_map_previous"]["count"] >= 2
 
 
-def test_a_pair_across_dropped_frames_spans_their_intervals(bundle_dir, frames):
-    """Frames 0 -> 2 (1 dropped) at 0.25 s per frame: velocities and the speed threshold use 0.5 s, i.e.
-    they equal the pipeline run with dt = 0.5 (the velocities of a one-interval pair would be 2× too fast)."""
-    runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
-    processor = RuntimeProcessor(runtime, min_score=-1.0, frame_dt=0.25)
-    views = decoded(processor, frames)
-    state = CameraState()
-    processor.process("c", state, views[0])
-    state.previous, state.last_sequence = views[0], 0
-    got = types_pb2.Detections.FromString(processor.process("c", state, views[2]).moving_objects)
-    tensors = [views_tensors(stack_views([v], "v"), torch.device("cpu")) for v in (views[0], views[2])]
-    pair = {**{f"{k}0": v for k, v in tensors[0].items()}, **{f"{k}1": v for k, v in tensors[1].items()}}
-    slow = moving_objects(runtime.bundle, **pair, config=MovingObjectsConfig(dt=0.5))
+def _assert_boxes_equal(got: types_pb2.Detections, slow: dict) -> None:
+    """The published boxes = the reference's valid rows, best first."""
     keep = slow["valid"][0]
-    assert keep.any() and len(got.boxes) == int(keep.sum())
     order = torch.argsort(-slow["scores"][0][keep], stable=True)
-    for box, velocity in zip(got.boxes, slow["velocities"][0][keep][order]):
+    assert len(got.boxes) == int(keep.sum())
+    for box, ref_box, score, velocity in zip(got.boxes, slow["boxes"][0][keep][order], slow["scores"][0][keep][order],
+                                             slow["velocities"][0][keep][order]):
+        np.testing.assert_allclose([box.x, box.y, box.z, box.lx, box.ly, box.lz, box.yaw], ref_box.numpy(), atol=1e-4)
         np.testing.assert_allclose([box.vx, box.vy, box.vz], velocity.numpy(), atol=1e-4)
-    assert processor.pair_dt(0, 2) == 0.5 and processor.pair_dt(4, 5) == 0.25
+        assert box.score == pytest.approx(float(score), abs=1e-5)
+
+
+def test_the_interval_comes_from_the_timestamps(bundle_dir, frames):
+    """Frames 0 -> 2 stamped 0.5 s apart: velocities over 0.5 s whatever --frame-dt says. Without timestamps
+    (both 0): (2 − 0) × frame_dt. A timestamp that does not advance is a malformed frame naming it."""
+    runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
+    processor = RuntimeProcessor(runtime, min_score=-1.0, frame_dt=0.1)
+    for stamped, dt in ((True, 2 * STEP_S), (False, 2 * 0.1)):
+        views = decoded(frames, stamped=stamped)
+        state = CameraState()
+        processor.process("c", state, views[0])
+        state.advance(views[0])
+        got = types_pb2.Detections.FromString(processor.process("c", state, views[2]).moving_objects)
+        slow = reference_moving_objects(runtime.bundle, pair_of(views[0], views[2]), stabilize="egomotion", dt=dt)
+        assert slow["valid"].any()
+        _assert_boxes_equal(got, slow)
+    views = decoded(frames)
+    late = processor.decode(encode_frame(frames[3], camera_id="c", sequence=3, timestamp=views[2].timestamp))
+    state = CameraState()
+    processor.process("c", state, views[2])
+    state.advance(views[2])
+    with pytest.raises(MalformedFrame, match=r"^frame\.timestamp: "):
+        processor.process("c", state, late)
     with pytest.raises(ValueError, match="frame_dt"):
         RuntimeProcessor(runtime, frame_dt=0.0)
+
+
+def test_a_bundle_without_egomotion_needs_the_frames_poses(bundle_dir, frames):
+    """Without an egomotion module the step stabilises with the poses: a frame without one is refused."""
+    full = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu")).bundle
+    bundle = Bundle(preset=TINY, modules={k: m for k, m in full.modules.items() if k != "egomotion"})
+    stream = MovingStream(SimpleNamespace(bundle=bundle, version="v", device=torch.device("cpu")), min_score=-1.0,
+                          frame_dt=0.2)
+    unposed = [make_view(rgb=f["rgb"], depth=f["depth"], pix_T_cam=f["pix_T_cam"], field="frame", sequence=i,
+                         timestamp=1.0 + i) for i, f in enumerate(frames[:2])]
+    state = CameraState()
+    stream.step("c", state, unposed[0])  # a first frame: nothing to stabilise yet
+    state.advance(unposed[0])
+    with pytest.raises(InvalidInput, match=r"^frame\.world_T_cam: missing"):
+        stream.step("c", state, unposed[1])
 
 
 def test_cache_is_keyed_by_sequence(bundle_dir, frames):
     """A stale cache (another frame's encoding) is never used: the step recomputes instead."""
     runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
     processor = RuntimeProcessor(runtime, min_score=-1.0)
-    views = decoded(processor, frames)
+    views = decoded(frames)
     state = CameraState()
     processor.process("c", state, views[0])
-    state.previous, state.last_sequence = views[0], 0
+    state.advance(views[0])
     processor.prepare("c", state)
     stale = state.extra["encoding"]
     # frame 2 follows frame 1, but the cache still holds frame 0's encoding under sequence 0
-    state.previous, state.last_sequence = views[1], 1
+    state.advance(views[1])
     processor.process("c", state, views[2])
     assert processor.stats()["map_previous"]["count"] == 1  # frame 1 was encoded, frame 0's cache ignored
     assert state.extra["sequence"] == 2 and state.extra["encoding"] is not stale
 
 
-def test_bridge_frame_dt_default_is_the_pipelines():
-    from core.pipeline.moving import DEFAULT_DT
-    from services.cli.stream import DEFAULT_FRAME_DT
+def test_frame_dt_default_is_the_pipelines():
+    from core.pipeline.moving_boxes import DEFAULT_DT
+    from services.cli.argtypes import DEFAULT_FRAME_DT
 
     assert DEFAULT_FRAME_DT == DEFAULT_DT

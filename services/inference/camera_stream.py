@@ -1,0 +1,146 @@
+"""Moving objects on a stream of frames, camera by camera: the step the zenoh bridge and the gRPC
+StreamMovingObjects share (services.streaming.processor, grpc_server.py).
+
+The transport keeps one `CameraState` per camera and drops duplicate and out-of-order frames
+(`CameraState.verdict`). A camera's first frame (or one whose image size changed) has nothing to compare
+with and gives empty Detections. Every later frame runs one `core.pipeline.moving_step` between the
+previous frame and itself — egomotion once (`cam0_T_cam1`, previous camera to current), stabilised 3D flow,
+boxes in `ref` = the camera at the previous frame — with the previous frame's FrameEncoding taken from
+`CameraState.extra`, keyed by its sequence number and the bundle version so that a hot reload or a reset
+never mixes stale tensors in. `prepare` makes that encoding while the transport waits for the next
+frame, which takes the map of the previous frame off the next frame's latency. The pair's interval comes
+from the frames' timestamps ((seq1 − seq0) × `frame_dt` only when neither carries one; see
+routes.moving_interval). Answers equal the moving_objects route's for the same pair
+(tests/unit/streaming/test_stream_step.py).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from core.moving.amodal import SizePrior
+from core.pipeline import encode_previous, moving_step
+from core.pipeline.encoding import FrameEncoding
+from core.pipeline.moving_boxes import MovingObjectsConfig
+from n3dmap.v1 import inference_pb2, types_pb2
+from services.inference import codecs
+from services.inference.camera_state import CameraState
+from services.inference.routes import BOX_FRAME, detections_results, moving_interval, pair_tensors, views_tensors
+from services.inference.validation import View, stack_views
+from services.inference.wire import detections_proto
+
+STAGE_WINDOW = 512  # per-stage timings kept for the status percentiles
+
+
+@dataclass(frozen=True)
+class StepAnswer:
+    """What one frame gives: its Detections, and the egomotion (previous -> this camera) when the bundle
+    has an egomotion module and there was a previous frame."""
+
+    detections: types_pb2.Detections
+    egomotion: inference_pb2.EgomotionResponse | None
+
+
+class MovingStream:
+    """Runs the moving-object step of each camera's frames over the runtime's loaded bundle. Call `step`
+    and `prepare` from one thread at a time (the bridge's worker, or the runtime's model thread)."""
+
+    def __init__(self, runtime, *, min_score: float, frame_dt: float, size_prior: SizePrior | None = None,
+                 reuse: bool = True) -> None:
+        """min_score: boxes scored below it are dropped; frame_dt: seconds per sequence number for frames
+        without timestamps; size_prior: amodal boxes of this object size (core.moving.amodal), or None for
+        visible boxes; reuse: False encodes the previous frame again every step (for comparisons)."""
+        if not frame_dt > 0:
+            raise ValueError(f"frame_dt must be positive seconds, got {frame_dt}")
+        self.runtime = runtime
+        self.min_score = min_score
+        self.frame_dt = float(frame_dt)
+        self.config = MovingObjectsConfig(size_prior=size_prior)
+        self.reuse = reuse
+        self._stages: dict[str, deque] = {}
+        self._stages_lock = threading.Lock()
+
+    # -- the per-camera cache ----------------------------------------------------------------------
+    def _cached(self, state: CameraState, sequence: int, version: str) -> FrameEncoding | None:
+        extra = state.extra
+        if self.reuse and extra.get("sequence") == sequence and extra.get("bundle_version") == version:
+            return extra.get("encoding")
+        return None
+
+    def _remember(self, state: CameraState, sequence: int, version: str, encoding: FrameEncoding) -> None:
+        state.extra.update(sequence=sequence, bundle_version=version, encoding=encoding)
+
+    def prepare(self, camera: str, state: CameraState) -> None:
+        """Idle-time work: encode `state.previous` (the last processed frame) for the next step."""
+        previous = state.previous
+        if not self.reuse or previous is None:
+            return
+        bundle, version = self.runtime.bundle, self.runtime.version
+        cached = self._cached(state, previous.sequence, version)
+        if cached is not None and cached.features is not None:
+            return
+        timings: dict[str, float] = {}
+        with torch.inference_mode():
+            encoding = encode_previous(bundle, **views_tensors([stack_views([previous], "previous")], self.runtime.device),
+                                       cached=cached, fit_ground=self.config.ground_margin is not None, timings=timings)
+        self._remember(state, previous.sequence, version, encoding)
+        self._record({f"idle_{k}": v for k, v in timings.items()})
+
+    # -- one frame -----------------------------------------------------------------------------------
+    def step(self, camera: str, state: CameraState, frame: View) -> StepAnswer:
+        """The answer to `frame`, the camera's next frame (state.previous: the one before, or None). Raises
+        InvalidInput when the pair cannot be answered without guessing (a clock that does not advance,
+        missing poses a bundle without egomotion needs)."""
+        started = time.perf_counter()
+        bundle, version = self.runtime.bundle, self.runtime.version  # one bundle for the whole step
+        views1 = stack_views([frame], "frame")
+        previous = state.previous
+        if previous is None or previous.depth.shape != frame.depth.shape:
+            # First frame of this camera (or its image size changed): nothing to compare with yet.
+            state.extra.clear()
+            empty = types_pb2.Detections(frame=BOX_FRAME, bundle_version=version, camera_id=camera,
+                                         sequence=frame.sequence, source_timestamp=frame.timestamp,
+                                         world_T_frame=codecs.numpy_to_tensor(frame.world_T_cam))
+            return StepAnswer(detections=empty, egomotion=None)
+        views0 = stack_views([previous], "previous")
+        dt = moving_interval(views0, views1, modules=bundle.modules, frame_dt=self.frame_dt,
+                             pose_fields=("frame.world_T_cam", "frame.world_T_cam"), time_field="frame")
+        timings: dict[str, float] = {}
+        with torch.inference_mode():
+            out = moving_step(bundle, **pair_tensors([views0], [views1], self.runtime.device), config=self.config,
+                              previous=self._cached(state, previous.sequence, version), dt=dt, timings=timings)
+        # This frame's own-ref work (its egomotion volume) is the next step's previous-frame cache.
+        self._remember(state, frame.sequence, version, out["current"])
+        egomotion = None
+        if "cam0_T_cam1" in out:
+            egomotion = inference_pb2.EgomotionResponse(
+                info=inference_pb2.ResponseInfo(bundle_version=version, frame=BOX_FRAME),
+                cam0_T_cam1=codecs.numpy_to_tensor(out["cam0_T_cam1"][0].float().cpu().numpy()))
+        (moving,) = detections_results(out, [self.min_score], label="moving")
+        # Boxes are in ref = the camera at the previous frame; sequence/timestamp name the newest frame.
+        detections = detections_proto(moving, frame=BOX_FRAME, bundle_version=version, views=views1, ref_views=views0,
+                                      latency_s=time.perf_counter() - started)
+        detections.camera_id = camera
+        timings["step_total"] = time.perf_counter() - started
+        self._record(timings)
+        return StepAnswer(detections=detections, egomotion=egomotion)
+
+    # -- per-stage timings ---------------------------------------------------------------------------
+    def _record(self, timings: dict[str, float]) -> None:
+        with self._stages_lock:
+            for stage, seconds in timings.items():
+                self._stages.setdefault(stage, deque(maxlen=STAGE_WINDOW)).append(1000.0 * seconds)
+
+    def stats(self) -> dict:
+        """Per-stage milliseconds over the recent steps: {stage: {p50, p99, mean, count}}."""
+        with self._stages_lock:
+            snapshot = {k: np.asarray(v, np.float64) for k, v in self._stages.items()}
+        return {stage: {"p50": round(float(np.percentile(ms, 50)), 2), "p99": round(float(np.percentile(ms, 99)), 2),
+                        "mean": round(float(ms.mean()), 2), "count": int(ms.size)}
+                for stage, ms in sorted(snapshot.items()) if ms.size}
