@@ -28,7 +28,9 @@ visible extent is the object's, across it only the surface's thickness (one voxe
    side the camera looks straight across grows on both ends. Vertically, objects stand on the ground:
    with a ground plane the box reaches down to it (the ground gate removes the voxels just above the
    ground, so a component rarely holds an object's bottom) and up to the visible top, or to the prior's
-   height when that is clearly short; without a plane the visible vertical extent stays.
+   height when that is clearly short; without a plane, or when the plane lies further below the visible
+   top than the prior's maximum height (a frame tilted against gravity), the visible vertical extent
+   stays.
 
 `SizePrior` holds the plausible size; `estimate_size_prior` estimates it without labels from the
 visible boxes of many components (their median extents).
@@ -149,8 +151,10 @@ def amodal_box(xyz: np.ndarray, *, viewpoint: np.ndarray | None, prior: SizePrio
         if grow > 0:
             centre[[0, 2]] += 0.5 * grow * _away(axis, to_object) * axis
     top, height = visible[1] - visible[4] / 2, visible[4]
-    if ground_y is not None and ground_y > top:
-        # Objects stand on the ground: the box reaches down to it, and up to the visible top or the prior.
+    # Objects stand on the ground: the box reaches down to it, and up to the visible top or the prior —
+    # unless that would make it taller than any object (a frame tilted against gravity, like a camera
+    # looking down, puts the plane far below along its Y; then the visible vertical extent stays).
+    if ground_y is not None and top < ground_y <= top + prior.max_height:
         height = ground_y - top
         height += _growth(height, prior.height)
         centre[1] = ground_y - height / 2

@@ -93,6 +93,9 @@ def test_rear_view_grows_away_from_the_camera_by_exactly_the_missing_length():
     wide = np.array([[x, y, 10.0 + VOXEL / 2] for x in np.arange(-0.875, 0.9, VOXEL) for y in ys])
     box = amodal_box(wide, viewpoint=np.zeros(3), prior=prior, voxel=VOXEL, pad=0.0)
     assert box[5] == pytest.approx(1.75) and box[4] == pytest.approx(0.75)
+    # a plane further below the top than any object is tall (a tilted frame): no anchoring either
+    box = amodal_box(wide, viewpoint=np.zeros(3), prior=prior, voxel=VOXEL, pad=0.0, ground_y=5.0)
+    assert box[4] == pytest.approx(0.75) and box[1] == pytest.approx(-0.5)
 
 
 def test_a_component_bigger_than_the_prior_keeps_its_size():
