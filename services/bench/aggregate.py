@@ -31,7 +31,8 @@ def fmt(s: dict | None, digits: int = 3) -> str:
     return text
 
 
-def _get(d: dict, *path):
+def get_path(d: dict, *path):
+    """d[path[0]][path[1]]..., or None where a key is missing."""
     for key in path:
         if not isinstance(d, dict) or key not in d:
             return None
@@ -40,7 +41,7 @@ def _get(d: dict, *path):
 
 
 def over_seeds(per_seed: dict, *path) -> dict:
-    return spread(_get(r, *path) for r in per_seed.values())
+    return spread(get_path(r, *path) for r in per_seed.values())
 
 
 def detection_table(per_seed: dict, variants, budgets: list[str], ious=("0.33", "0.5", "0.75")) -> dict:
@@ -61,7 +62,7 @@ def flow_table(per_seed: dict, arms) -> dict:
     rows = {"zero-motion": {c: over_seeds(per_seed, "flow", arms[-1], "zero_motion", k) for c, k in cols.items()}}
     for arm in arms:
         rows[arm] = {c: over_seeds(per_seed, "flow", arm, "model", k) for c, k in cols.items()}
-    if any(_get(r, "flow", "volume") for r in per_seed.values()):
+    if any(get_path(r, "flow", "volume") for r in per_seed.values()):
         # n3dmap's default flow module, over the fused input volumes instead of an arm's features
         rows["input volumes"] = {c: over_seeds(per_seed, "flow", "volume", "model", k) for c, k in cols.items()}
     return rows
@@ -75,7 +76,7 @@ def occupancy_table(per_seed: dict, arms) -> dict:
 def egomotion_table(per_seed: dict) -> dict:
     methods = set()
     for r in per_seed.values():
-        methods |= set(_get(r, "egomotion", "methods") or {})
+        methods |= set(get_path(r, "egomotion", "methods") or {})
     order = [m for m in ("model", "icp", "identity") if m in methods] + sorted(methods - {"model", "icp", "identity"})
     return {m: {"rot_rad": over_seeds(per_seed, "egomotion", "methods", m, "rot_err_rad_mean"),
                 "trans_m": over_seeds(per_seed, "egomotion", "methods", m, "trans_err_m_mean"),
@@ -88,7 +89,7 @@ def moving_table(per_seed: dict) -> dict:
     for setting in ("static", "moving"):
         methods: list[str] = []
         for r in per_seed.values():
-            for m in _get(r, "moving", setting) or {}:
+            for m in get_path(r, "moving", setting) or {}:
                 if m not in methods:
                     methods.append(m)
         methods.sort(key=_moving_order)
@@ -97,7 +98,7 @@ def moving_table(per_seed: dict) -> dict:
                             # AP at 3D IoU 0.25 too: boxes fitted to 0.5–1 m voxels rarely reach 0.5
                             "ap_iou025": over_seeds(per_seed, "moving", setting, m, "ap_by_iou", "0.25"),
                             "gt_boxes": over_seeds(per_seed, "moving", setting, m, "gt_boxes"),
-                            "curve": _get(first, "moving", setting, m, "curve")} for m in methods}
+                            "curve": get_path(first, "moving", setting, m, "curve")} for m in methods}
         out[f"pairs_{setting}"] = over_seeds(per_seed, "moving", "pairs", setting)
     return out
 

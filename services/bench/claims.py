@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from typing import Callable
 
+from services.bench import aggregate as agg
 from services.bench.aggregate import fmt, spread
 from services.bench.judge import (
     FLOORS, AtLeast, Better, Condition, Positive, RatioAtMost, WithinOf, derive, judge,
@@ -23,11 +24,9 @@ STABILISED_TOLERANCE = 0.1   # moving camera: |AP with the egomotion module − 
 
 
 def _get(d, *path):
-    for key in path:
-        if not isinstance(d, dict) or key not in d:
-            return None
-        d = d[key]
-    return d if isinstance(d, (int, float)) and not isinstance(d, bool) else None
+    """The number at `path` in the nested result, or None (missing, or not a number)."""
+    value = agg.get_path(d, *path)
+    return value if isinstance(value, (int, float)) and not isinstance(value, bool) else None
 
 
 def _values(per_seed: dict, getters: dict[str, Callable[[dict], float | None]]) -> dict[str, dict]:

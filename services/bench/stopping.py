@@ -30,6 +30,7 @@ from typing import Callable
 import torch
 
 from core.errors import N3dmapError
+from services.bench.stages import write_json
 
 RULE_KINDS = ("fixed", "plateau", "epochs")
 MARKER = "stopping.json"
@@ -127,7 +128,7 @@ def train_by_rule(rule: StageRule, run_dir: Path, *, train_to: Callable[[int], P
                   "reason": "fixed step count" if rule.kind == "fixed" else
                   f"{rule.epochs} epochs × {math.ceil(records / batch_size)} steps ({records} records, batch "
                   f"{batch_size}), clamped to [{rule.min_steps}, {rule.max_steps}]", "evaluations": []}
-        _write_json(run_dir / MARKER, result)
+        write_json(run_dir / MARKER, result)
         return result
 
     if heldout_loss is None:
@@ -145,12 +146,12 @@ def train_by_rule(rule: StageRule, run_dir: Path, *, train_to: Callable[[int], P
         if new_best == step:
             _select(bundle, run_dir)   # keep the best weights so far
         log(f"  held-out loss at step {step}: {loss:.4g}" + (" (best)" if new_best == step else ""))
-        _write_json(partial, {"evaluations": [asdict(e) for e in history]})
+        write_json(partial, {"evaluations": [asdict(e) for e in history]})
     if not (run_dir / SELECTED / "bundle.json").exists():
         raise StageRuleError(f"{run_dir}: no held-out evaluation was finite; nothing to select")
     result = {"rule": rule.to_dict(), "describe": rule.describe(), "steps_run": history[-1].step,
               "selected_step": best_step, "reason": reason, "evaluations": [asdict(e) for e in history]}
-    _write_json(run_dir / MARKER, result)
+    write_json(run_dir / MARKER, result)
     return result
 
 
@@ -192,11 +193,3 @@ def _select(bundle_dir: Path, run_dir: Path) -> None:
         os.replace(run_dir / SELECTED, old)
     os.replace(tmp, run_dir / SELECTED)
     shutil.rmtree(old, ignore_errors=True)
-
-
-def _write_json(path: Path, value) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(value, indent=2, sort_keys=True) + "\n")
-    os.replace(tmp, path)
-

@@ -21,15 +21,17 @@ component is split or dropped when oversized and grown to a whole object away fr
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 
 from core.data.ground_truth import gt_flow, gt_occupancy, points_in_ref
 from core.eval.moving_protocol import camera_setting, gt_moving_boxes, moving_objects_2p5d_rig
-from dataclasses import replace
-
+from core.geometry import se3
 from core.moving.amodal import SizePrior, estimate_size_prior
 from core.moving.ground import DEFAULT_MARGIN_VOXELS, fit_ground_plane
+from core.pipeline.egomotion import rig_cam_T_ref
 from core.pipeline.moving import DEFAULT_DT, OCCUPANCY_SOURCES, MovingObjectsConfig, boxes_from_flow, moving_objects
 from services.cli.argtypes import non_negative_float, positive_float, positive_int
 from services.cli.eval import (add_eval_parser, add_rerun_option, check_rerun_option, iter_records,
@@ -103,10 +105,11 @@ def _oracle(record, t, grid, config: MovingObjectsConfig) -> dict:
     true_flow = gt_flow(record, t, grid)[None]                                  # 1×3×Z×Y×X
     xyz, valid = points_in_ref(record, t)                                       # the same ground plane rule
     ground = [fit_ground_plane(xyz[valid].double().numpy()) if config.ground_margin is not None else None]
-    ref_T_cam = torch.linalg.inv(torch.as_tensor(record["world_T_ref"][t], dtype=torch.float64)) @ \
-        torch.as_tensor(record["world_T_cam"][t], dtype=torch.float64)        # V×4×4
+    cam_T_ref = rig_cam_T_ref(torch.as_tensor(record["world_T_cam"][t], dtype=torch.float64)[None],
+                              torch.as_tensor(record["world_T_ref"][t], dtype=torch.float64)[None])  # 1×V×4×4
+    viewpoints = se3.invert(cam_T_ref)[..., :3, 3].float()                      # 1×V×3 camera centres in ref
     observed = gt_occupancy(record, t, grid)[None]                              # 1×1×Z×Y×X
-    out = boxes_from_flow(true_flow, observed, grid, config, ground=ground, viewpoints=ref_T_cam[None, :, :3, 3].float())
+    out = boxes_from_flow(true_flow, observed, grid, config, ground=ground, viewpoints=viewpoints)
     return {**out, "flow": true_flow, "observed": observed}
 
 
