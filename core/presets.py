@@ -50,6 +50,7 @@ class Preset:
     feature_dim: int = 32          # F: channels of the 3D feature map
     embed_dim: int = 32            # E: channels of the 2D embeddings
     encoder_width: int = 64        # channels of the first 3D encoder stage (paper: 64)
+    encoder_full_res: int = 0      # channels of the encoder's full-resolution branch (0: the paper's layers)
     depth_planes: int = 64         # log-spaced planes of the 3D->2D projection (max-pooled ×8)
     depth_min: float = 1.0         # nearest projection plane, metres
     depth_max: float = 40.0        # farthest projection plane, metres
@@ -69,6 +70,7 @@ class Preset:
             name=d["name"], grid=GridConfig.from_dict(d["grid"]), camera=CameraConfig(**d["camera"]),
             num_views=d["num_views"], num_frames=d["num_frames"], ground_y=d["ground_y"],
             feature_dim=d["feature_dim"], embed_dim=d["embed_dim"], encoder_width=d["encoder_width"],
+            encoder_full_res=d.get("encoder_full_res", 0),  # absent in bundles made before the branch existed
             depth_planes=d["depth_planes"], depth_min=d["depth_min"], depth_max=d["depth_max"],
             train=TrainDefaults(**d["train"]),
         )

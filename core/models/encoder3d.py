@@ -32,10 +32,14 @@ class Encoder3D(nn.Module):
     """B×Cin×Z×Y×X volume -> B×F×Z×Y×X per-voxel unit-length features."""
 
     def __init__(self, *, in_channels: int = 4, width: int = 64, out_channels: int = 32,
-                 normalize: bool = True) -> None:
+                 normalize: bool = True, full_res: int = 0) -> None:
         super().__init__()
         self.in_channels, self.width, self.out_channels = in_channels, width, out_channels
         self.normalize = normalize
+        self.full_res = int(full_res)
+        if self.full_res > 0:
+            self.skip0 = nn.Sequential(Conv3d(in_channels, self.full_res, 3, padding=1), nn.LeakyReLU(0.1, inplace=True))
+            self.fuse0 = Conv3d(out_channels + self.full_res, out_channels, 1)
         C = width
         self.down1 = _conv_block(Conv3d(in_channels, C, 4, stride=2, padding=1), C)
         self.down2 = _conv_block(Conv3d(C, 2 * C, 4, stride=2, padding=1), 2 * C)
@@ -46,7 +50,7 @@ class Encoder3D(nn.Module):
 
     def config(self) -> dict:
         return {"in_channels": self.in_channels, "width": self.width,
-                "out_channels": self.out_channels, "normalize": self.normalize}
+                "out_channels": self.out_channels, "normalize": self.normalize, "full_res": self.full_res}
 
     def forward(self, volume: torch.Tensor) -> torch.Tensor:
         """volume: B×Cin×Z×Y×X -> features B×F×Z×Y×X (unit L2 norm per voxel if `normalize`)."""
@@ -62,6 +66,8 @@ class Encoder3D(nn.Module):
         feat = self.out(u2)                        # B×F×Z/2×…
         feat = F.interpolate(feat, size=x0.shape[-3:], mode="trilinear", align_corners=False)
         feat = feat[..., :Z, :Y, :X]               # B×F×Z×Y×X (crop the padding)
+        if self.full_res > 0:
+            feat = self.fuse0(torch.cat([feat, self.skip0(volume)], dim=1))  # B×F×Z×Y×X
         if self.normalize:
             feat = l2_normalize_channels(feat)
         return feat

@@ -56,14 +56,15 @@ class RunningMap:
 class Mapper(nn.Module):
     """RGB-D views with poses -> latent 3D feature map in `ref` (B×F×Z×Y×X)."""
 
-    def __init__(self, *, grid: GridConfig | dict, width: int = 64, feature_dim: int = 32) -> None:
+    def __init__(self, *, grid: GridConfig | dict, width: int = 64, feature_dim: int = 32, full_res: int = 0) -> None:
         super().__init__()
         self.grid = grid if isinstance(grid, GridConfig) else GridConfig.from_dict(grid)
-        self.width, self.feature_dim = width, feature_dim
-        self.encoder = Encoder3D(in_channels=4, width=width, out_channels=feature_dim)
+        self.width, self.feature_dim, self.full_res = width, feature_dim, int(full_res)
+        self.encoder = Encoder3D(in_channels=4, width=width, out_channels=feature_dim, full_res=full_res)
 
     def config(self) -> dict:
-        return {"grid": self.grid.to_dict(), "width": self.width, "feature_dim": self.feature_dim}
+        return {"grid": self.grid.to_dict(), "width": self.width, "feature_dim": self.feature_dim,
+                "full_res": self.full_res}
 
     def encode_views(self, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam: torch.Tensor,
                      cam_T_ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

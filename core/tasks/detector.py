@@ -52,6 +52,7 @@ class DetectorTaskConfig:
     grid: GridConfig
     feature_dim: int = 32                 # F of the map
     encoder_width: int = 64               # mapper's 3D encoder width (must match a pretrained mapper)
+    encoder_full_res: int = 0             # mapper's full-resolution branch (must match too)
     width: int = 64                       # C of the detector's 3D neck
     head_width: int = 128                 # H of the bird's-eye-view head
     stride: int = 4                       # voxels per anchor cell
@@ -104,7 +105,8 @@ class DetectorTask(nn.Module):
     def __init__(self, *, config: DetectorTaskConfig) -> None:
         super().__init__()
         self.cfg = c = config
-        self.mapper = Mapper(grid=c.grid, width=c.encoder_width, feature_dim=c.feature_dim)
+        self.mapper = Mapper(grid=c.grid, width=c.encoder_width, feature_dim=c.feature_dim,
+                             full_res=c.encoder_full_res)
         self.detector = Detector3D(grid=c.grid, in_channels=c.feature_dim, width=c.width,
                                    head_width=c.head_width, stride=c.stride, anchor_sizes=c.anchor_sizes,
                                    anchor_y=c.anchor_y)
@@ -121,6 +123,7 @@ class DetectorTask(nn.Module):
         DetectorTaskConfig fields."""
         grid = preset.grid
         base = dict(grid=grid, feature_dim=preset.feature_dim, encoder_width=preset.encoder_width,
+                    encoder_full_res=preset.encoder_full_res,
                     width=2 * preset.feature_dim, head_width=4 * preset.feature_dim,
                     stride=default_stride(grid), anchor_y=preset.ground_y - CAR_HALF_HEIGHT_M,
                     labels=labels, freeze_features=freeze_features)

@@ -48,6 +48,7 @@ class FlowTaskConfig:
     grid: GridConfig
     feature_dim: int = 32
     encoder_width: int = 64
+    encoder_full_res: int = 0       # Encoder3D.full_res (see core.models.encoder3d)
     channels: int = 16
     levels: int = 3
     warp_weight: float = 1.0
@@ -89,7 +90,8 @@ class FlowTask(nn.Module):
     def __init__(self, *, config: FlowTaskConfig) -> None:
         super().__init__()
         self.cfg = config
-        self.mapper = Mapper(grid=config.grid, width=config.encoder_width, feature_dim=config.feature_dim)
+        self.mapper = Mapper(grid=config.grid, width=config.encoder_width, feature_dim=config.feature_dim,
+                             full_res=config.encoder_full_res)
         self.mapper.requires_grad_(False)
         if config.inputs not in FLOW_INPUTS:
             raise ValueError(f"FlowTaskConfig.inputs must be one of {FLOW_INPUTS}, got {config.inputs!r}")
@@ -102,7 +104,8 @@ class FlowTask(nn.Module):
 
     @staticmethod
     def from_preset(preset: Preset, **overrides) -> "FlowTask":
-        base = dict(grid=preset.grid, feature_dim=preset.feature_dim, encoder_width=preset.encoder_width)
+        base = dict(grid=preset.grid, feature_dim=preset.feature_dim, encoder_width=preset.encoder_width,
+                    encoder_full_res=preset.encoder_full_res)
         base.update(overrides)
         return FlowTask(config=FlowTaskConfig(**base))
 

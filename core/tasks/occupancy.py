@@ -30,6 +30,7 @@ class OccupancyTaskConfig:
     grid: GridConfig
     feature_dim: int = 32
     encoder_width: int = 64
+    encoder_full_res: int = 0       # Encoder3D.full_res (see core.models.encoder3d)
     input_views: int = 1
     seed: int | None = None
 
@@ -47,13 +48,15 @@ class OccupancyTask(nn.Module):
     def __init__(self, *, config: OccupancyTaskConfig) -> None:
         super().__init__()
         self.cfg = config
-        self.mapper = Mapper(grid=config.grid, width=config.encoder_width, feature_dim=config.feature_dim)
+        self.mapper = Mapper(grid=config.grid, width=config.encoder_width, feature_dim=config.feature_dim,
+                             full_res=config.encoder_full_res)
         self.occupancy = OccupancyHead(in_channels=config.feature_dim)
         self._generator = torch.Generator().manual_seed(config.seed) if config.seed is not None else None
 
     @staticmethod
     def from_preset(preset: Preset, **overrides) -> "OccupancyTask":
-        base = dict(grid=preset.grid, feature_dim=preset.feature_dim, encoder_width=preset.encoder_width)
+        base = dict(grid=preset.grid, feature_dim=preset.feature_dim, encoder_width=preset.encoder_width,
+                    encoder_full_res=preset.encoder_full_res)
         base.update(overrides)
         return OccupancyTask(config=OccupancyTaskConfig(**base))
 

@@ -52,6 +52,7 @@ class PretrainConfig:
     feature_dim: int = 32          # F
     embed_dim: int = 32            # E (contrastive); the regression head always renders 3 channels
     encoder_width: int = 64        # C of the 3D encoder; the 2D ResNet uses (C, 2C)
+    encoder_full_res: int = 0      # Encoder3D.full_res: channels of its full-resolution branch
     depth_planes: int = 64
     depth_min: float = 1.0
     depth_max: float = 40.0
@@ -79,7 +80,8 @@ class PretrainTask(nn.Module):
     def __init__(self, *, config: PretrainConfig) -> None:
         super().__init__()
         self.cfg = c = config
-        self.mapper = Mapper(grid=c.grid, width=c.encoder_width, feature_dim=c.feature_dim)
+        self.mapper = Mapper(grid=c.grid, width=c.encoder_width, feature_dim=c.feature_dim,
+                             full_res=c.encoder_full_res)
         contrastive = c.objective == "contrastive"
         self.projector = Projector(grid=c.grid, in_channels=c.feature_dim,
                                    out_channels=c.embed_dim if contrastive else 3,
@@ -96,6 +98,7 @@ class PretrainTask(nn.Module):
         """Task at a preset's sizes; keyword `overrides` replace PretrainConfig fields."""
         base = dict(grid=preset.grid, objective=objective, feature_dim=preset.feature_dim,
                     embed_dim=preset.embed_dim, encoder_width=preset.encoder_width,
+                    encoder_full_res=preset.encoder_full_res,
                     depth_planes=preset.depth_planes, depth_min=preset.depth_min, depth_max=preset.depth_max,
                     contrastive=ContrastiveConfig(samples=preset.train.contrastive_samples))
         base.update(overrides)

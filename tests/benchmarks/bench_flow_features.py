@@ -1,0 +1,136 @@
+"""Do a pair of stabilised 3D volumes carry the objects' motion? The matchability test under 3D flow.
+
+    python tests/benchmarks/bench_flow_features.py --data DIR [--bundle B ...] [--records 16]
+        [--radius 3 1 3] [--threads 1]
+
+For each record of DIR (t = 0 → 1, both maps lifted into ref_0 with the record poses, as the flow
+bench does) and each compared pair — the fused 4-channel input volumes, and the mapper's maps of each
+`--bundle` (its `mapper` module) — this scores every occupied voxel of t against the voxels of t+1
+within ±radius (x, y, z) by cosine similarity, and prints, over the occupied voxels of moving objects
+(true flow ≥ 0.5 voxel) and over static occupied voxels:
+- hit: the best-scoring integer shift equals the rounded true flow (moving) / is zero (static);
+- moved: (moving only) the best shift is not zero;
+- margin: cos(true shift) − cos(zero shift), mean (moving: positive = the motion is visible);
+- sharp: cos(best) − the mean cos over all shifts (how peaked the similarity is).
+A flow module trained on a pair whose moving-voxel `hit` is near zero cannot beat zero motion: the
+motion is not in what it compares. One JSON line per (pair, split) follows the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import sys
+import time
+
+import torch
+
+from core.bundle import load_bundle
+from core.data.batch import records_to_batch
+from core.data.ground_truth import gt_flow, gt_occupancy
+from core.data.shards import ShardDataset
+from core.models.cost_volume import cross_correlation_3d, displacements
+from core.models.egomotion_inputs import fused_input_volume
+from core.models.normalize import l2_normalize_channels
+from core.presets import get_preset
+from core.tasks.poses import cam_T_ref
+
+
+def shift_scores(f0: torch.Tensor, f1: torch.Tensor, radius: tuple[int, int, int]) -> torch.Tensor:
+    """f0, f1: 1×C×Z×Y×X -> cosine of f0(p) with f1(p + d) for every shift d: D×Z×Y×X (D z-major)."""
+    return cross_correlation_3d(l2_normalize_channels(f0), l2_normalize_channels(f1), radius)[0]
+
+
+def pair_stats(scores: torch.Tensor, disp: torch.Tensor, flow: torch.Tensor, moving: torch.Tensor,
+               static: torch.Tensor) -> dict[str, dict[str, float]]:
+    """scores D×Z×Y×X, disp D×3 (x, y, z), flow 3×Z×Y×X, masks Z×Y×X bool -> sums per split."""
+    D = disp.shape[0]
+    zero = int(((disp == 0).all(1)).nonzero()[0])
+    best = scores.argmax(0)  # Z×Y×X
+    best_d = disp[best].permute(3, 0, 1, 2)  # 3×Z×Y×X
+    r = disp.abs().amax(0)  # (rx, ry, rz)
+    want = torch.maximum(torch.minimum(flow.round(), r.view(3, 1, 1, 1)), -r.view(3, 1, 1, 1))  # 3×Z×Y×X
+    # index of the rounded true shift in the z-major order of `displacements`
+    nx, ny = 2 * int(r[0]) + 1, 2 * int(r[1]) + 1
+    idx = ((want[2] + r[2]) * ny * nx + (want[1] + r[1]) * nx + (want[0] + r[0])).long()  # Z×Y×X
+    cos_true = scores.gather(0, idx[None])[0]
+    cos_zero = scores[zero]
+    sharp = scores.max(0).values - scores.mean(0)
+    out = {}
+    for name, mask in (("moving", moving), ("static", static)):
+        n = int(mask.sum())
+        if name == "moving":
+            hit = (best_d == want).all(0)
+        else:
+            hit = best == zero
+        out[name] = {"n": n, "hit": float(hit[mask].sum()), "moved": float((best != zero)[mask].sum()),
+                     "margin": float((cos_true - cos_zero)[mask].sum()), "sharp": float(sharp[mask].sum())}
+    assert D == scores.shape[0]
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--bundle", action="append", default=[], help="NAME=DIR of a bundle with a mapper (repeatable)")
+    ap.add_argument("--records", type=int, default=16)
+    ap.add_argument("--radius", type=int, nargs=3, default=(3, 1, 3), metavar=("RX", "RY", "RZ"))
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    print("command: python " + " ".join(shlex.quote(a) for a in sys.argv), f"| load {os.getloadavg()[0]:.2f}", flush=True)
+    ds = ShardDataset(args.data)
+    preset = None
+    mappers = {}
+    for item in args.bundle:
+        name, _, path = item.partition("=")
+        b = load_bundle(path, only=["mapper"])
+        mappers[name] = b.modules["mapper"]
+        preset = b.preset
+    if preset is None:
+        preset = get_preset(ds.manifest["preset"])
+    grid = preset.grid
+    radius = tuple(args.radius)
+    disp = displacements(radius).long()
+    totals: dict[str, dict[str, dict[str, float]]] = {}
+    t0 = time.time()
+    for i in range(min(args.records, len(ds))):
+        rec = ds[i]
+        b = records_to_batch([rec])
+        flow = gt_flow(rec, 0, grid)  # 3×Z×Y×X
+        occ = gt_occupancy(rec, 0, grid)[0] > 0.5  # Z×Y×X
+        mag = flow.norm(dim=0)
+        moving, static = occ & (mag >= 0.5), occ & (mag < 1e-6)
+        cam0, cam1 = cam_T_ref(b, 0, 0), cam_T_ref(b, 1, 0)
+        pairs = {"volume": (fused_input_volume(b["rgb"][:, 0], b["depth"][:, 0], b["pix_T_cam"], cam0, grid),
+                            fused_input_volume(b["rgb"][:, 1], b["depth"][:, 1], b["pix_T_cam"], cam1, grid))}
+        with torch.no_grad():
+            for name, m in mappers.items():
+                pairs[name] = (m(b["rgb"][:, 0], b["depth"][:, 0], b["pix_T_cam"], cam0),
+                               m(b["rgb"][:, 1], b["depth"][:, 1], b["pix_T_cam"], cam1))
+        for name, (f0, f1) in pairs.items():
+            s = pair_stats(shift_scores(f0, f1, radius), disp, flow, moving, static)
+            acc = totals.setdefault(name, {})
+            for split, d in s.items():
+                a = acc.setdefault(split, {k: 0.0 for k in d})
+                for k, v in d.items():
+                    a[k] += v
+    print(f"{min(args.records, len(ds))} records of {args.data}, radius {radius}, {time.time() - t0:.0f} s")
+    print(f"| {'pair':<14} | split  | voxels | hit   | moved | margin  | sharp |")
+    rows = []
+    for name, acc in totals.items():
+        for split, a in acc.items():
+            n = max(a["n"], 1.0)
+            row = {"pair": name, "split": split, "voxels": int(a["n"]), "hit": a["hit"] / n,
+                   "moved": a["moved"] / n, "margin": a["margin"] / n, "sharp": a["sharp"] / n}
+            rows.append(row)
+            print(f"| {name:<14} | {split:<6} | {row['voxels']:6d} | {row['hit']:.3f} | {row['moved']:.3f} | "
+                  f"{row['margin']:+.4f} | {row['sharp']:.3f} |")
+    for row in rows:
+        print(json.dumps(row))
+
+
+if __name__ == "__main__":
+    main()
