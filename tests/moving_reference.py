@@ -16,8 +16,9 @@ from dataclasses import replace
 import torch
 
 from core.geometry import se3
+from core.geometry.poses import rig_cam_T_ref
 from core.models.egomotion_inputs import fused_input_volume
-from core.pipeline.egomotion import estimate_egomotion, rig_cam_T_ref
+from core.pipeline.egomotion import estimate_egomotion
 from core.pipeline.moving_boxes import MovingObjectsConfig, boxes_from_flow, frame_evidence
 
 

@@ -21,6 +21,7 @@ from core.geometry import boxes as gboxes
 from core.geometry import camera, se3
 from core.geometry.freespace import free_space
 from core.geometry.grid import GridConfig, mem_T_ref, voxel_centers_ref
+from core.geometry.poses import relative
 from core.geometry.voxelize import voxelize
 
 Record = Mapping[str, np.ndarray]
@@ -62,8 +63,8 @@ def gt_egomotion(record: Record, t0: int, t1: int) -> dict[str, torch.Tensor]:
     world_T_ref = _f64(record, "world_T_ref")  # T×4×4
     world_T_cam = _f64(record, "world_T_cam")  # T×V×4×4
     return {
-        "ref0_T_ref1": (se3.invert(world_T_ref[t0]) @ world_T_ref[t1]).float(),
-        "cam0_T_cam1": (se3.invert(world_T_cam[t0]) @ world_T_cam[t1]).float(),
+        "ref0_T_ref1": relative(world_T_ref[t0], world_T_ref[t1]).float(),
+        "cam0_T_cam1": relative(world_T_cam[t0], world_T_cam[t1]).float(),
     }
 
 
@@ -78,7 +79,7 @@ def points_in_ref(record: Record, t: int, views: Sequence[int] | None = None) ->
     depth = torch.as_tensor(np.asarray(record["depth"][t, views]), dtype=torch.float64)  # V'×H×W
     pix_T_cam = _f64(record, "pix_T_cam")[views]  # V'×4×4
     xyz_cam, valid = camera.depth_to_points(depth, pix_T_cam)  # V'×HW×3, V'×HW
-    ref_T_cam = se3.invert(_f64(record, "world_T_ref")[t]) @ _f64(record, "world_T_cam")[t, views]  # V'×4×4
+    ref_T_cam = relative(_f64(record, "world_T_ref")[t], _f64(record, "world_T_cam")[t, views])  # V'×4×4
     return se3.apply(ref_T_cam, xyz_cam).float(), valid
 
 
@@ -102,7 +103,7 @@ def gt_free(record: Record, t: int, grid: GridConfig, views: Sequence[int] | Non
     depth = torch.as_tensor(np.asarray(record["depth"][t, views]), dtype=torch.float32)  # V'×H×W
     pix_T_cam = _f64(record, "pix_T_cam")[views].float()  # V'×4×4
     xyz_cam, valid = camera.depth_to_points(depth, pix_T_cam)  # V'×HW×3, V'×HW
-    cam_T_ref = (se3.invert(_f64(record, "world_T_cam")[t, views]) @ _f64(record, "world_T_ref")[t]).float()  # V'×4×4
+    cam_T_ref = relative(_f64(record, "world_T_cam")[t, views], _f64(record, "world_T_ref")[t]).float()  # V'×4×4
     free = free_space(xyz_cam, valid, cam_T_ref, grid).amax(0)  # 1×Z×Y×X, union over views
     occupied = gt_occupancy(record, t, grid, views)
     return free * (1.0 - occupied)

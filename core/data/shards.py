@@ -12,9 +12,10 @@ Record keys match `[A-Za-z0-9_-]+` (WebDataset splits a member name at its first
 record i is keyed `ep{i:06d}`, and a record dict may carry its own key under `"__key__"`.
 
 Readers: `ShardDataset` (random access by index through a per-shard member offset index, sequential
-streaming, `verify()`), and the low-level `iter_shard` / `decode_record` that a Ray Data reader calls on
-shard paths or bytes. Anything wrong — missing manifest or shard, a shard whose size or sha256 differs
-from the manifest, a truncated tar, an undecodable member, a record that breaks the schema — raises
+streaming, `verify()`), and the low-level pieces a streaming reader (the Ray Data one in
+services.training.data) is built from: `dataset_shard_paths` (the checked shard list), `iter_tar_members`
+(the checked, undecoded members of one shard), `iter_shard` and `decode_record`. Anything wrong —
+missing manifest or shard, a shard whose size or sha256 differs from the manifest, a truncated tar, an undecodable member, a record that breaks the schema — raises
 `DataError` naming the shard (and the record where known); a partial result is never passed on.
 """
 
@@ -317,6 +318,23 @@ def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
+def dataset_shard_paths(data_dir: str | os.PathLike) -> tuple[list[str], dict[str, list[str]], dict]:
+    """Check a dataset directory for a streaming reader: (absolute shard paths, the manifest's record keys
+    per shard filename, manifest). DataError for a missing shard or a manifest without shards."""
+    root = Path(data_dir)
+    manifest = load_manifest(root)
+    paths, keys = [], {}
+    for entry in manifest["shards"]:
+        path = root / entry["filename"]
+        if not path.is_file():
+            raise DataError(f"missing shard {entry['filename']} (listed in {root / MANIFEST_NAME})")
+        paths.append(str(path.resolve()))
+        keys[entry["filename"]] = list(entry["keys"])
+    if not paths:
+        raise DataError(f"{root}: the manifest lists no shards")
+    return paths, keys, manifest
+
+
 def iter_shard(source: str | os.PathLike | bytes | BinaryIO, *, name: str | None = None,
                expected_keys: Sequence[str] | None = None) -> Iterator[tuple[str, dict[str, np.ndarray]]]:
     """Stream the records of one shard: yields (record_key, record), each decoded and validated.
@@ -340,6 +358,18 @@ def iter_shard(source: str | os.PathLike | bytes | BinaryIO, *, name: str | None
 
 
 def _iter_tar(f: BinaryIO, name: str, expected_keys: Sequence[str] | None):
+    for key, payload in iter_tar_members(f, name, expected_keys):
+        yield key, decode_record(payload, f"{name} record {key}")
+
+
+def iter_tar_members(f: BinaryIO, name: str,
+                     expected_keys: Sequence[str] | None = None) -> Iterator[tuple[str, bytes]]:
+    """Stream the `(record_key, npz bytes)` members of one shard's tar file object, undecoded (a Ray Data
+    reader splits shards on its read tasks and decodes on the workers; iter_shard decodes here).
+
+    Every member must be a `<key>.npz` file with a valid key; given `expected_keys` (the manifest's, in
+    order) a missing, extra or reordered member raises DataError, as does a truncated or corrupt tar.
+    """
     position = 0
     try:
         with tarfile.open(fileobj=f, mode="r|") as tar:
@@ -352,13 +382,12 @@ def _iter_tar(f: BinaryIO, name: str, expected_keys: Sequence[str] | None):
                     if key != expected_keys[position]:
                         raise DataError(f"{name}: member {position} is {key!r}, the manifest expects "
                                         f"{expected_keys[position]!r}")
-                where = f"{name} record {key}"
                 extracted = tar.extractfile(member)
                 payload = extracted.read() if extracted is not None else b""
                 if len(payload) != member.size:
-                    raise DataError(f"{where}: truncated shard ({len(payload)} of {member.size} bytes)")
+                    raise DataError(f"{name} record {key}: truncated shard ({len(payload)} of {member.size} bytes)")
                 position += 1
-                yield key, decode_record(payload, where)
+                yield key, payload
     except (tarfile.TarError, EOFError, OSError) as e:
         last = f" after {position} records" if position else ""
         raise DataError(f"{name}: truncated or corrupt tar{last}: {_one_line(e)}") from None

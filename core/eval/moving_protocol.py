@@ -20,6 +20,7 @@ from core.data.ground_truth import gt_egomotion, points_in_ref
 from core.geometry import camera, se3
 from core.geometry.boxes import box_T_obj, points_in_boxes, transform_boxes
 from core.geometry.grid import GridConfig
+from core.geometry.poses import relative
 from core.moving.nms import nms_bev
 
 # Relative ego motion below this counts as a static camera (metres / radians per step).
@@ -97,19 +98,19 @@ def moving_objects_2p5d_rig(record, t: int, *, flow_source: str, stabilise: bool
     """
     if flow_source not in ("farneback", "oracle"):
         raise ValueError(f"flow_source must be 'farneback' or 'oracle', got {flow_source!r}")
-    world_T_ref = np.asarray(record["world_T_ref"][t], dtype=np.float64)
+    world_T_ref = torch.as_tensor(np.asarray(record["world_T_ref"][t]), dtype=torch.float64)
     boxes, scores = [], []
     for v in range(record["rgb"].shape[1]):
-        world_T_cam0 = np.asarray(record["world_T_cam"][t, v], dtype=np.float64)
-        world_T_cam1 = np.asarray(record["world_T_cam"][t + 1, v], dtype=np.float64)
+        world_T_cam0 = torch.as_tensor(np.asarray(record["world_T_cam"][t, v]), dtype=torch.float64)
+        world_T_cam1 = torch.as_tensor(np.asarray(record["world_T_cam"][t + 1, v]), dtype=torch.float64)
         if flow_source == "farneback":
             flow = farneback_flow(record["rgb"][t, v], record["rgb"][t + 1, v])
         else:
             flow = oracle_flow2d_rig(record, t, v)
         found = moving_objects_from_flow2d(
             flow, record["depth"][t, v], record["pix_T_cam"][v], threshold=threshold_px, min_pixels=min_pixels,
-            stabilise=stabilise, cam1_T_cam0=np.linalg.inv(world_T_cam1) @ world_T_cam0,
-            ref_T_cam0=np.linalg.inv(world_T_ref) @ world_T_cam0, dt=dt, nms_iou=nms_iou)
+            stabilise=stabilise, cam1_T_cam0=relative(world_T_cam1, world_T_cam0).numpy(),
+            ref_T_cam0=relative(world_T_ref, world_T_cam0).numpy(), dt=dt, nms_iou=nms_iou)
         boxes += [d["box_ref"] for d in found]
         scores += [d["score"] for d in found]
     if not boxes:

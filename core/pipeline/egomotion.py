@@ -12,18 +12,8 @@ import torch
 
 from core.errors import check_shape
 from core.geometry import se3
+from core.geometry.poses import rig_cam_T_ref
 from core.models.egomotion_inputs import fused_input_volume
-
-
-def ref_pose(world_T_cam: torch.Tensor, world_T_ref: torch.Tensor | None) -> torch.Tensor:
-    """world_T_ref B×4×4 of one instant: the given one, else the camera of view 0 (world_T_cam B×V×4×4)."""
-    return world_T_cam[:, 0] if world_T_ref is None else world_T_ref
-
-
-def rig_cam_T_ref(world_T_cam: torch.Tensor, world_T_ref: torch.Tensor | None) -> torch.Tensor:
-    """world_T_cam B×V×4×4, world_T_ref B×4×4 or None (= view 0's camera) -> cam_T_ref B×V×4×4."""
-    B, V = world_T_cam.shape[:2]
-    return se3.compose(se3.invert(world_T_cam), ref_pose(world_T_cam, world_T_ref)[:, None].expand(B, V, 4, 4))
 
 
 def egomotion_from_volumes(net, vol0: torch.Tensor, vol1: torch.Tensor, cam_T_ref0: torch.Tensor,

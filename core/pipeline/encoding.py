@@ -15,8 +15,8 @@ from dataclasses import dataclass, replace
 
 import torch
 
+from core.geometry.poses import rig_cam_T_ref
 from core.models.egomotion_inputs import fused_input_volume
-from core.pipeline.egomotion import rig_cam_T_ref
 from core.pipeline.moving_boxes import FrameEvidence, frame_evidence
 
 

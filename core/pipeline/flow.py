@@ -15,8 +15,9 @@ from __future__ import annotations
 import torch
 
 from core.geometry import se3
+from core.geometry.poses import rig_cam_T_ref
 from core.models.egomotion_inputs import fused_input_volume
-from core.pipeline.egomotion import egomotion_from_volumes, rig_cam_T_ref
+from core.pipeline.egomotion import egomotion_from_volumes
 from core.pipeline.encoding import FrameEncoding, Stopwatch, encode_previous
 from core.pipeline.stabilise import STABILISE, identity_like, poses_ref0_T_ref1, resolve_stabilise
 

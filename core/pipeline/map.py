@@ -11,8 +11,8 @@ import torch
 
 from core.bundle import Bundle
 from core.errors import check_shape
-from core.geometry import se3
 from core.geometry.grid import GridConfig
+from core.geometry.poses import rig_cam_T_ref
 from core.models.latent_map import masked_average
 
 
@@ -42,10 +42,9 @@ def map_frames(bundle: Bundle, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam
     check_shape("depth", depth, (B, V, rgb.shape[3], rgb.shape[4]))
     check_shape("pix_T_cam", pix_T_cam, (B, V, 4, 4))
     check_shape("world_T_cam", world_T_cam, (B, V, 4, 4))
-    if world_T_ref is None:
-        world_T_ref = world_T_cam[:, 0]
-    check_shape("world_T_ref", world_T_ref, (B, 4, 4))
-    cam_T_ref = se3.compose(se3.invert(world_T_cam), world_T_ref[:, None].expand(B, V, 4, 4))  # B×V×4×4
+    if world_T_ref is not None:
+        check_shape("world_T_ref", world_T_ref, (B, 4, 4))
+    cam_T_ref = rig_cam_T_ref(world_T_cam, world_T_ref)  # B×V×4×4
     feats, in_view, _ = mapper.encode_views(rgb, depth, pix_T_cam, cam_T_ref)
     out = {"features": masked_average(feats, in_view), "observed": in_view.amax(dim=1)}
     if "occupancy" in bundle.modules:

@@ -21,6 +21,7 @@ import torch
 from core.geometry import se3
 from core.geometry.camera import depth_to_points
 from core.geometry.grid import GridConfig
+from core.geometry.poses import camera_centres
 from core.geometry.voxelize import voxelize
 from core.moving.amodal import SizePrior
 from core.moving.detect_moving import detections_to_tensors, moving_objects_from_flow
@@ -89,7 +90,7 @@ def frame_evidence(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torc
     observed = voxelize(xyz_ref, grid, valid)  # B×1×Z×Y×X
     planes = [fit_ground_plane(xyz_ref[b][valid[b]].double().cpu().numpy()) if fit_ground else None
               for b in range(B)]
-    viewpoints = se3.invert(cam_T_ref.reshape(B * V, 4, 4))[:, :3, 3].reshape(B, V, 3)  # B×V×3 ref_T_cam's t
+    viewpoints = camera_centres(cam_T_ref)  # B×V×3
     return FrameEvidence(observed=observed, ground=planes, viewpoints=viewpoints)
 
 

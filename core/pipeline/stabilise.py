@@ -15,8 +15,7 @@ from __future__ import annotations
 import torch
 
 from core.errors import BundleError, N3dmapError
-from core.geometry import se3
-from core.pipeline.egomotion import ref_pose
+from core.geometry.poses import ref_pose, relative
 
 STABILISE = ("egomotion", "poses", "none")
 
@@ -38,7 +37,7 @@ def poses_ref0_T_ref1(world_T_cam0: torch.Tensor, world_T_cam1: torch.Tensor,
                       world_T_ref0: torch.Tensor | None = None,
                       world_T_ref1: torch.Tensor | None = None) -> torch.Tensor:
     """world_T_cam0/1 B×V×4×4, world_T_ref0/1 B×4×4 or None -> ref0_T_ref1 B×4×4 from the poses."""
-    return se3.compose(se3.invert(ref_pose(world_T_cam0, world_T_ref0)), ref_pose(world_T_cam1, world_T_ref1))
+    return relative(ref_pose(world_T_cam0, world_T_ref0), ref_pose(world_T_cam1, world_T_ref1))
 
 
 def identity_like(world_T_cam: torch.Tensor) -> torch.Tensor:

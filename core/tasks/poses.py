@@ -9,16 +9,14 @@ from __future__ import annotations
 
 import torch
 
-from core.geometry import se3
+from core.geometry.poses import relative, rig_cam_T_ref
 
 
 def cam_T_ref(batch: dict[str, torch.Tensor], t_cam: int, t_ref: int) -> torch.Tensor:
     """batch world_T_cam B×T×V×4×4, world_T_ref B×T×4×4 -> B×V×4×4."""
-    world_T_cam = batch["world_T_cam"][:, t_cam]  # B×V×4×4
-    B, V = world_T_cam.shape[:2]
-    return se3.compose(se3.invert(world_T_cam), batch["world_T_ref"][:, t_ref, None].expand(B, V, 4, 4))
+    return rig_cam_T_ref(batch["world_T_cam"][:, t_cam], batch["world_T_ref"][:, t_ref])
 
 
 def ref0_T_ref1(batch: dict[str, torch.Tensor], t0: int, t1: int) -> torch.Tensor:
     """Ground-truth egomotion between the map frames of times t0 and t1: B×4×4 (frame ref_t0)."""
-    return se3.compose(se3.invert(batch["world_T_ref"][:, t0]), batch["world_T_ref"][:, t1])
+    return relative(batch["world_T_ref"][:, t0], batch["world_T_ref"][:, t1])

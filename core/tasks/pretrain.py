@@ -39,6 +39,7 @@ from core.models.net2d import Net2D
 from core.models.occupancy_head import OccupancyHead
 from core.models.projector import Projector
 from core.presets import Preset
+from core.tasks import poses
 
 OBJECTIVES = ("contrastive", "regression")
 
@@ -116,15 +117,14 @@ class PretrainTask(nn.Module):
     def forward(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """batch: `core.data.batch.records_to_batch` output (B×T×V views, V ≥ 2) -> loss + metrics."""
         rgb_all = batch["rgb"]  # B×T×V×3×H×W
-        B, T, V, _, H, W = rgb_all.shape
+        _, T, V, _, H, W = rgb_all.shape
         if V < 2:
             raise ShapeError(f"pretraining needs at least 2 views per time step, got V={V}")
         t, target = self._randint(T), self._randint(V)
         inputs = [v for v in range(V) if v != target]
         rgb, depth = rgb_all[:, t], batch["depth"][:, t]          # B×V×3×H×W, B×V×H×W
         pix_T_cam = batch["pix_T_cam"]                             # B×V×4×4
-        cam_T_ref = se3.compose(se3.invert(batch["world_T_cam"][:, t]),
-                                batch["world_T_ref"][:, t, None].expand(B, V, 4, 4))  # B×V×4×4
+        cam_T_ref = poses.cam_T_ref(batch, t, t)                  # B×V×4×4
 
         feats, in_view, occupied = self.mapper.encode_views(rgb, depth, pix_T_cam, cam_T_ref)
         top3d = masked_average(feats[:, inputs], in_view[:, inputs])  # B×F×Z×Y×X

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from core.data.shards import write_dataset
 from core.presets import get_preset
-from services.cli.data import SEED_STRIDE, episode_seed
+from core.data.seeds import SEED_STRIDE, episode_seed
 
 
 def generate_split(out_dir: Path, *, preset: str, episodes: int, seed: int, split: str) -> dict:

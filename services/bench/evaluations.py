@@ -1,8 +1,8 @@
-"""The benchmark's evaluations: the `n3dmap eval` kinds' own `evaluate` functions, reduced to JSON.
+"""The benchmark's evaluations: the evaluation protocols of `n3dmap eval` (core.eval.protocols), reduced to JSON.
 
 Each function takes loaded bundles and the test records and returns a plain dict for a stage's
-metrics.json (services.bench.paper); the scoring is entirely the eval kinds' (services/cli/eval_tasks).
-The bench only decides which bundles to score and how to name the rows of the paper's tables.
+metrics.json (services.bench.paper); the scoring is entirely the protocols'. The bench only decides
+which bundles to score and how to name the rows of the paper's tables.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from core.bundle import Bundle
 
 DETECTION_IOUS = (0.33, 0.5, 0.75)
 MOVING_CURVE_POINTS = 50   # points kept per PR curve in metrics.json (for the plots)
-# services.cli.eval_tasks.moving's method names -> the report's rows (the 3D model rows are named per bundle).
+# core.eval.protocols.moving's method names -> the report's rows (the 3D model rows are named per bundle).
 MOVING_BASELINE_NAMES = {
     "oracle 3d flow": "oracle 3D flow (true flow, same post-processing)",
     "2.5d farneback": "2.5D Farneback",
@@ -25,9 +25,9 @@ MOVING_BASELINE_NAMES = {
 
 def detection(bundle: Bundle, records, *, device) -> dict:
     """mAP of a detector bundle: {"map": {iou: AP3D}, "map_bev": {iou: APBEV}, "gt_boxes", "detections", "frames"}."""
-    from services.cli.eval_tasks import detection as kind
+    from core.eval.protocols import detection as protocol
 
-    result = kind.evaluate(bundle, records, device=device, thresholds=DETECTION_IOUS)
+    result = protocol.evaluate(bundle, records, device=device, thresholds=DETECTION_IOUS)
     s = result["ap"].summary()
     return {"map": s["ap3d"], "map_bev": s["apbev"], "gt_boxes": s["num_gt"], "detections": s["num_pred"],
             "frames": result["frames"]}
@@ -44,9 +44,10 @@ def random_pretrain_bundle(preset, *, seed: int, device) -> Bundle:
 
 def retrieval(bundle: Bundle, records, *, device, per_example: int, cube: int, seed: int) -> dict:
     """{"2d": {"p@1", "p@5", "p@10", "queries"}, "3d": {...}, "mode_2d", "skipped"}."""
-    from services.cli.eval_tasks import retrieval as kind
+    from core.eval.protocols.retrieval import RetrievalEvalConfig, evaluate
 
-    result = kind.evaluate(bundle, records, device=device, per_example=per_example, cube_3d=cube, seed=seed)
+    result = evaluate(bundle, records, RetrievalEvalConfig(per_example=per_example, cube_3d=cube, seed=seed),
+                      device=device)
     nan = {"p@1": float("nan"), "p@5": float("nan"), "p@10": float("nan"), "queries": 0}
     return {"2d": result["scores"].get("2d", nan), "3d": result["scores"].get("3d", nan),
             "mode_2d": result["mode_2d"], "skipped": result["skipped"]}
@@ -56,28 +57,28 @@ def moving(model_bundles: dict[str, Bundle], records, *, device, iou: float, thr
            min_pixels: int) -> dict:
     """Moving-object AP per camera setting for each named flow bundle (its "3d (model)" row) plus, from
     the first bundle's run, the oracle-3D-flow and 2.5D baseline rows. A bundle holding an `egomotion`
-    module is stabilised with it, otherwise with the record poses (the eval kind's rule).
+    module is stabilised with it, otherwise with the record poses (the protocol's rule).
 
     Returns {"iou", "pairs": {setting: n}, setting: {method: {"ap", "ap_by_iou", "gt_boxes",
     "detections", "curve": {"precision", "recall"}}}}.
     """
-    from core.pipeline.moving import MovingObjectsConfig
-    from services.cli.eval_detection import threshold_key
-    from services.cli.eval_tasks import moving as kind
+    from core.eval.protocols import moving as protocol
+    from core.eval.thresholds import threshold_key
 
     out: dict = {"iou": iou}
     for i, (name, bundle) in enumerate(model_bundles.items()):
-        result = kind.evaluate(bundle, records, device=device, config=MovingObjectsConfig(), threshold_px=threshold_px,
-                               min_pixels=min_pixels, min_points=10, baselines=i == 0)
+        config = protocol.MovingEvalConfig(threshold_px=threshold_px, min_pixels=min_pixels, min_points=10,
+                                           baselines=i == 0)
+        result = protocol.evaluate(bundle, records, config, device=device)
         out["pairs"] = result["pairs"]
         for setting, per_method in result["acc"].items():
             rows = out.setdefault(setting, {})
             for method, acc in per_method.items():
-                label = name if method == kind.MODEL else MOVING_BASELINE_NAMES.get(method, method)
-                if method != kind.MODEL and i > 0:
+                label = name if method == protocol.MODEL else MOVING_BASELINE_NAMES.get(method, method)
+                if method != protocol.MODEL and i > 0:
                     continue  # the baselines do not depend on the bundle: kept from the first run
                 s = acc.summary()
-                precision, recall = acc.curve(iou) if iou in acc.thresholds else acc.curve(kind.PRIMARY_IOU)
+                precision, recall = acc.curve(iou) if iou in acc.thresholds else acc.curve(protocol.PRIMARY_IOU)
                 keep = _subsample(len(recall), MOVING_CURVE_POINTS)
                 rows[label] = {"ap": s["ap3d"].get(threshold_key(iou)), "ap_by_iou": s["ap3d"],
                                "gt_boxes": s["num_gt"], "detections": s["num_pred"],

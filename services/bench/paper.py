@@ -20,8 +20,7 @@ one after another in this process with every CPU, or `parallel_seeds` at a time 
 (services.bench.seed_worker) with the CPUs shared out (services.threads): processes × threads never
 exceeds the usable CPUs. Training goes
 through the training CLI's own job runner (services.bench.training); every evaluation is scored by the
-`n3dmap eval` kinds' own `evaluate` functions (services/cli/eval_tasks, reduced to JSON by
-services.bench.evaluations).
+protocols `n3dmap eval` runs (core.eval.protocols, reduced to JSON by services.bench.evaluations).
 """
 
 from __future__ import annotations
@@ -36,6 +35,7 @@ from typing import Callable
 
 import torch
 
+from core.device import resolve_device
 from services.bench.plan import PRETRAINED_ARMS, BenchConfig, BenchConfigError
 from services.bench.stages import StageRunner, write_json
 from services.bench.stopping import MARKER as TRAIN_MARKER
@@ -54,12 +54,6 @@ def detector_stage(arm: str, mode: str, budget: int | None) -> str:
     return f"detector_{arm}_{mode}_L{budget_name(budget)}"
 
 
-def _device(choice: str) -> torch.device:
-    if choice == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(choice)
-
-
 def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds: int = 1,
                     threads: int | None = None, log: Callable[[str], None] = print) -> dict:
     """Run (or continue) the whole benchmark into `out_dir`; returns the report's metrics dict.
@@ -72,7 +66,7 @@ def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds:
     out = Path(out_dir)
     stages = StageRunner(out / "work", log)
     _check_same_plan(out / "work" / "plan.json", config)
-    device = _device(config.device)
+    device = resolve_device(config.device)
     log(f"[bench] paper benchmark, preset {config.preset}, seeds {list(config.seeds)}, device {device}, "
         f"{'quick profile' if config.quick else 'full profile'} -> {out}")
 
@@ -108,7 +102,7 @@ def run_one_seed(out_dir: str | Path, seed: int, *, log: Callable[[str], None] =
     stages = StageRunner(out / "work", log)
     data = {split: stages.dir(f"data/{split}") for split in ("train", "val", "test")}
     _seed_stages(stages, config, seed, data, _load_records(data["test"]), _load_records(data["val"]),
-                 _device(config.device))
+                 resolve_device(config.device))
 
 
 def _thread_plan(processes: int, threads: int | None) -> ThreadPlan:
@@ -213,12 +207,11 @@ def _data_stages(stages: StageRunner, config: BenchConfig) -> dict:
 def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict, test_records: list[dict],
                  val_records: list[dict], device) -> dict:
     from core.bundle import Bundle, load_bundle
-    from services.bench import evaluations
-    from services.bench.training import train_stage
-    from services.cli.train_tasks.detector import labelled_subset
-
     from core.presets import get_preset
+    from services.bench import evaluations
     from services.bench.stopping import SELECTED
+    from services.bench.training import train_stage
+    from services.training.label_subset import labelled_subset
 
     preset = get_preset(config.preset)
     s = f"seed{seed}"
@@ -227,7 +220,7 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
     def train(name: str, *, label_budget: int | None = None, data_dir: Path = data["train"], **kw) -> Path:
         def run(d: Path) -> None:
             # A label budget trains on the first N records, as `n3dmap train detector --labels N` does.
-            source = data_dir if label_budget is None else labelled_subset(data_dir, d, label_budget)
+            source = data_dir if label_budget is None else labelled_subset(data_dir, d, label_budget, log=print)
             train_stage(config, run_dir=d, seed=seed, data_dir=source, heldout_records=val_records, **kw)
         return stages.run(f"{s}/{name}", TRAIN_MARKER, run) / SELECTED
 
@@ -263,37 +256,36 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
         result["retrieval"][arm] = evaluate(f"retrieval/{arm}", retrieval)
 
     # Occupancy of each pretrained model's head, from one view (the paper's protocol).
-    from services.cli.eval_tasks import occupancy as eval_occupancy
+    from core.eval.protocols import occupancy as occupancy_protocol
     for arm in PRETRAINED_ARMS:
-        result["occupancy"][arm] = evaluate(f"occupancy/{arm}", lambda a=arm: eval_occupancy.evaluate(
-            load_bundle(pretrained[a], device), test_records, device=device, input_view=0, threshold=0.5)["scores"])
+        result["occupancy"][arm] = evaluate(f"occupancy/{arm}", lambda a=arm: occupancy_protocol.evaluate(
+            load_bundle(pretrained[a], device), test_records,
+            occupancy_protocol.OccupancyEvalConfig(input_view=0, threshold=0.5), device=device)["scores"])
 
     # 3D flow over the frozen features of each pretrained arm (the paper's protocol: the arms differ only
     # in the maps the flow module compares), and n3dmap's default flow, which compares the fused input
     # volumes (it does not depend on the pretraining; the contrastive bundle gives it the occupancy
     # head). All are scored against the zero-motion row.
-    from services.cli.eval_tasks import flow as eval_flow
+    from core.eval.protocols import flow as flow_protocol
     flows = {arm: train(f"flow_{arm}", task="flow", rule=rules.flow, task_options={"inputs": "features"},
                         init_bundle=pretrained[arm], freeze=("mapper",)) for arm in PRETRAINED_ARMS}
     flows[VOLUME_FLOW] = train(f"flow_{VOLUME_FLOW}", task="flow", rule=rules.flow,
                                task_options={"inputs": "volume"}, init_bundle=pretrained["contrastive"],
                                freeze=("mapper",))
     for arm in (*PRETRAINED_ARMS, VOLUME_FLOW):
-        result["flow"][arm] = evaluate(f"flow/{arm}", lambda a=arm: eval_flow.evaluate(
+        result["flow"][arm] = evaluate(f"flow/{arm}", lambda a=arm: flow_protocol.evaluate(
             load_bundle(flows[a], device), test_records, device=device, moving_threshold=1e-3)["scores"])
 
     # Egomotion vs ICP and identity, on the test pairs whose camera moves.
-    from core.eval.egomotion_metrics import summarize_errors
     from core.eval.moving_protocol import camera_setting
-    from services.cli.eval_tasks import egomotion as eval_egomotion
+    from core.eval.protocols import egomotion as egomotion_protocol
     ego_dir = train("egomotion", task="egomotion", rule=rules.egomotion)
     moving_cam = [r for r in test_records if r["rgb"].shape[0] > 1 and camera_setting(r, 0) == "moving"] or test_records
 
     def egomotion_metrics() -> dict:
-        res = eval_egomotion.evaluate(load_bundle(ego_dir, device), moving_cam, device=device, perturb_deg=0.0,
-                                      perturb_m=0.0, seed=seed, icp=True)
-        return {"methods": {k: summarize_errors(v) for k, v in res["methods"].items()},
-                "gt_motion": {k: float(v.mean()) for k, v in res["gt_motion"].items()}}
+        ego_config = egomotion_protocol.EgomotionEvalConfig(perturb_deg=0.0, perturb_m=0.0, seed=seed, icp=True)
+        return egomotion_protocol.summarize(egomotion_protocol.evaluate(load_bundle(ego_dir, device), moving_cam,
+                                                                        ego_config, device=device))
     result["egomotion"] = evaluate("egomotion/moving_camera", egomotion_metrics)
 
     # Moving objects: each flow bundle stabilised with the poses, the contrastive-feature and the

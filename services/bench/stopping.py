@@ -29,6 +29,7 @@ from typing import Callable
 
 import torch
 
+from core.device import resolve_device
 from core.errors import N3dmapError
 from services.bench.stages import write_json
 
@@ -160,9 +161,8 @@ def heldout_task_loss(job, records: list[dict], *, checkpoint_dir: Path, batch_s
     seed so that every evaluation draws the same views, negatives and synthetic motions)."""
     from services.training.checkpoints import load_checkpoint
     from services.training.loop import CORE_TASKS
-    from services.training.sessions import pick_device
 
-    device = pick_device(job.device, gpu_available=torch.cuda.is_available())
+    device = resolve_device(job.device)
     task = CORE_TASKS.build(job, device)
     load_checkpoint(checkpoint_dir, task=task)
     task.eval()

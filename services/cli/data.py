@@ -7,9 +7,9 @@
     n3dmap data preview DIR [--out FILE.png] [--rerun FILE.rrd [--points]] [--index I]
     n3dmap data import authors-npz|kitti|tum SRC --out DIR [...]
 
-Seeds: record i of `generate --seed S` is `core.synthetic.generate_record(preset, seed=S*100003 + i)`,
-so a record can be rebuilt alone and datasets made with different S never share a record for
-S*100003 + i distinct (fewer than 100003 records per dataset). `--moving-ego mixed` moves the ego in
+Seeds: record i of `generate --seed S` is `core.synthetic.generate_record(preset, seed=S*100003 + i)`
+(core.data.seeds), so a record can be rebuilt alone and datasets made with different S never share
+a record for S*100003 + i distinct (fewer than 100003 records per dataset). `--moving-ego mixed` moves the ego in
 the odd-indexed records. `--jobs N` renders in N processes of one torch thread each (render_pool.py);
 the records and their bytes do not depend on N.
 """
@@ -25,13 +25,7 @@ from typing import Callable
 # Errors are raised as core.errors types (not services.cli.main.CliError): under
 # `python -m services.cli.main` that module is __main__, and its CliError would be a different class.
 from core.errors import DataError, N3dmapError
-
-SEED_STRIDE = 100003
-
-
-def episode_seed(seed: int, index: int) -> int:
-    """Seed of record `index` of a dataset generated with `--seed seed`."""
-    return seed * SEED_STRIDE + index
+from core.data.seeds import SEED_STRIDE, episode_seed
 
 
 def register(subparsers) -> None:

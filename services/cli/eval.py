@@ -78,25 +78,6 @@ def print_rerun_option(args: argparse.Namespace, recorder) -> None:
               f"open it with `rerun {args.rerun}`)")
 
 
-def resolve_device(choice: str):
-    """'auto' -> cuda if available else cpu; anything else as given (a clear error if unavailable)."""
-    import torch
-
-    from services.cli.main import CliError
-
-    if choice == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        device = torch.device(choice)
-    except RuntimeError:  # torch's message lists every backend it knows; name the ones n3dmap runs on
-        raise CliError(f"--device {choice!r}: expected cpu, cuda, cuda:N or auto") from None
-    if device.type not in ("cpu", "cuda"):
-        raise CliError(f"--device {choice!r}: expected cpu, cuda, cuda:N or auto")
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise CliError(f"--device {choice}: CUDA is not available on this machine")
-    return device
-
-
 def iter_records(data_dir: str, max_records: int | None) -> Iterator[dict]:
     """Records of the dataset in order, at most `max_records` (DataError names a bad shard)."""
     from core.data.shards import ShardDataset

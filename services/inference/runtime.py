@@ -22,6 +22,7 @@ from typing import Any, Callable
 
 import torch
 
+from core.device import resolve_device
 from core.errors import BundleError
 from core.pipeline.moving_boxes import DEFAULT_DT
 from services.inference.batching import BatchConfig, BatchStats, MicroBatcher
@@ -67,15 +68,6 @@ class _Loaded:
     version: str
     path: str
     loaded_at: float
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise BundleError(f"device {name!r} asked for, but CUDA is not available here")
-    return device
 
 
 def bundle_version(bundle) -> str:

@@ -3,8 +3,10 @@
 Why rows of raw npz bytes rather than decoded tensor columns: records may differ in box count K
 (and Arrow tensor columns want one shape per block), and decoding on the training workers spreads
 that cost over them and reuses the one validated decoder (`core.data.shards.decode_record`). The
-read tasks only split tar files into members and check them against the manifest, so a missing,
-truncated or reordered shard fails with a `DataError` naming it.
+read tasks only split tar files into members and check them against the manifest with core's
+shard readers (`core.data.shards.dataset_shard_paths` and `iter_tar_members`, the checks every other
+reader runs), so a missing, truncated or reordered shard fails with a `DataError` naming it. Only the
+Ray glue lives here: core never imports Ray.
 
 `TorchTrainer(datasets={"train": ds})` gives each worker a disjoint, equal streaming split; every
 epoch re-reads the files in a new order (`shuffle="files"`), and the loop adds a local shuffle buffer.
@@ -13,58 +15,14 @@ epoch re-reads the files in a new order (`shuffle="files"`), and the loop adds a
 from __future__ import annotations
 
 import os
-import tarfile
-from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
-from core.data.shards import decode_record, load_manifest
-from core.errors import DataError
+from core.data.shards import dataset_shard_paths, decode_record, iter_tar_members
 
 COLUMNS = ("shard", "key", "npz")
 _BLOCK_RECORDS = 32            # rows per block yielded by a read task
 _BLOCK_BYTES = 64 << 20        # ...or fewer, once this many payload bytes are buffered
-
-
-def dataset_shard_paths(data_dir: str | os.PathLike) -> tuple[list[str], dict[str, list[str]], dict]:
-    """Check the dataset directory; return (absolute shard paths, keys per shard filename, manifest)."""
-    root = Path(data_dir)
-    manifest = load_manifest(root)
-    paths, keys = [], {}
-    for entry in manifest["shards"]:
-        path = root / entry["filename"]
-        if not path.is_file():
-            raise DataError(f"missing shard {entry['filename']} (listed in {root / 'manifest.json'})")
-        paths.append(str(path.resolve()))
-        keys[entry["filename"]] = list(entry["keys"])
-    if not paths:
-        raise DataError(f"{root}: the manifest lists no shards")
-    return paths, keys, manifest
-
-
-def split_tar(f, name: str, expected_keys: list[str] | None) -> Iterator[tuple[str, bytes]]:
-    """Stream `(key, npz bytes)` members of one tar file object, checked against the manifest."""
-    position = 0
-    try:
-        with tarfile.open(fileobj=f, mode="r|") as tar:
-            for member in tar:
-                if not member.isfile() or not member.name.endswith(".npz"):
-                    raise DataError(f"{name}: unexpected member {member.name!r} (expected <key>.npz)")
-                key = member.name[: -len(".npz")]
-                if expected_keys is not None:
-                    if position >= len(expected_keys) or key != expected_keys[position]:
-                        want = expected_keys[position] if position < len(expected_keys) else "nothing"
-                        raise DataError(f"{name}: member {position} is {key!r}, the manifest expects {want}")
-                payload = tar.extractfile(member).read()
-                if len(payload) != member.size:
-                    raise DataError(f"{name} record {key}: truncated shard")
-                position += 1
-                yield key, payload
-    except (tarfile.TarError, EOFError, OSError) as e:
-        raise DataError(f"{name}: truncated or corrupt tar after {position} records: {e}") from None
-    if expected_keys is not None and position != len(expected_keys):
-        raise DataError(f"{name}: truncated shard: {position} of {len(expected_keys)} records")
 
 
 def _make_datasource_class():
@@ -85,7 +43,7 @@ def _make_datasource_class():
             name = os.path.basename(path)
             rows: list[tuple[str, bytes]] = []
             buffered = 0
-            for key, payload in split_tar(f, name, self._keys_by_shard.get(name)):
+            for key, payload in iter_tar_members(f, name, self._keys_by_shard.get(name)):
                 rows.append((key, payload))
                 buffered += len(payload)
                 if len(rows) >= _BLOCK_RECORDS or buffered >= _BLOCK_BYTES:

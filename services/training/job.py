@@ -22,12 +22,12 @@ from pathlib import Path
 
 import torch
 
+from core.data.shards import dataset_shard_paths
 from core.errors import DataError, N3dmapError
 from services.training.checkpoints import (
     LocalCheckpointStore, check_same_run, load_checkpoint, read_checkpoint_state,
 )
 from services.training.config import TrainJobConfig
-from services.training.data import dataset_shard_paths
 from services.training.progress import MetricsTail
 from services.training.loop import CORE_TASKS, LoopOutcome, TaskSpec, TrainingError, train_loop
 

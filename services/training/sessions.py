@@ -15,22 +15,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from core.device import resolve_device
 from services.training.checkpoints import LocalCheckpointStore
 from services.training.config import TrainJobConfig
-from services.training.loop import TrainingError
 
 # Records in the local shuffle buffer of each Ray worker (a few batches' worth mixes within shards).
 SHUFFLE_BUFFER_RECORDS = 16
-
-
-def pick_device(requested: str, *, gpu_available: bool) -> torch.device:
-    """'auto' → cuda if this worker may use a GPU, else cpu; 'cuda' without a GPU is an error."""
-    if requested == "cpu":
-        return torch.device("cpu")
-    if requested == "cuda" and not gpu_available:
-        raise TrainingError("--device cuda, but no CUDA GPU is available to this worker "
-                            "(use --device cpu or --gpus-per-worker 1 on a GPU machine)")
-    return torch.device("cuda") if gpu_available else torch.device("cpu")
+# A Ray worker may use CUDA only with a GPU share, whatever the machine has: the error says how to get one.
+NO_GPU_SHARE = "to this worker (use --device cpu, or --gpus-per-worker 1 on a GPU machine)"
 
 
 class LocalSession:
@@ -51,7 +43,7 @@ class LocalSession:
             dataset = ShardDataset(config.data_dir)
         self.dataset = dataset
         self.config = config
-        self.device = pick_device(config.device, gpu_available=torch.cuda.is_available())
+        self.device = resolve_device(config.device)
         self.store = LocalCheckpointStore(config.local_checkpoint_root, keep=config.keep_checkpoints)
 
     def epoch_batches(self, epoch: int):
@@ -93,8 +85,8 @@ class RaySession:
         self.config = config
         self.rank = context.get_world_rank()
         self.world_size = context.get_world_size()
-        self.device = pick_device(config.device, gpu_available=config.gpus_per_worker > 0
-                                  and torch.cuda.is_available())
+        self.device = resolve_device(config.device, where=NO_GPU_SHARE,
+                                     cuda_available=config.gpus_per_worker > 0 and torch.cuda.is_available())
         if self.device.type == "cuda":
             self.device = ray.train.torch.get_device()
         self._shard = ray.train.get_dataset_shard("train")

@@ -22,6 +22,7 @@ from core.data.ground_truth import gt_flow, gt_occupancy  # noqa: E402
 from core.data.shards import write_dataset  # noqa: E402
 from core.moving.amodal import SizePrior  # noqa: E402
 from core.eval.moving_protocol import gt_moving_boxes  # noqa: E402
+from core.eval.protocols.inputs import pair_inputs, record_batch  # noqa: E402
 from core.models.detector_boxes import aabb_to_boxes, boxes_to_aabb  # noqa: E402
 from core.moving.ground import DEFAULT_MARGIN_VOXELS  # noqa: E402
 from core.pipeline.detect import detect, detections_per_item  # noqa: E402
@@ -33,7 +34,6 @@ from core.tasks.detector import DetectorTask, gt_boxes_ref  # noqa: E402
 from core.tasks.egomotion import EgomotionTask  # noqa: E402
 from core.tasks.flow import FlowTask  # noqa: E402
 from core.tasks.pretrain import PretrainTask  # noqa: E402
-from services.cli.eval_tasks.common import pair_inputs, record_batch  # noqa: E402
 from services.viz import rerun_paths as paths  # noqa: E402
 from tests.rrd_reading import Recording, array, rerun_cli, yaw_from_quaternions  # noqa: E402
 

@@ -14,19 +14,20 @@ import json
 import re
 from pathlib import Path
 
+from core.device import resolve_device
 from core.errors import N3dmapError
-from services.cli.eval import add_eval_parser, iter_records, load_bundle_for_eval, resolve_device
-from services.cli.eval_tasks import detection, moving, retrieval
+from core.eval.protocols import detection, egomotion, flow, moving, occupancy, retrieval
+from services.cli.eval import add_eval_parser, iter_records, load_bundle_for_eval
 from services.reports import Report
 
-# kind -> bundle modules it needs (egomotion/flow/occupancy: as their run() checks them).
+# kind -> bundle modules its protocol needs, in the order the kinds run.
 KINDS: dict[str, tuple[str, ...]] = {
     "retrieval": retrieval.NEEDS,
     "detection": detection.NEEDS,
     "moving": moving.NEEDS,
-    "egomotion": ("egomotion",),
-    "flow": ("mapper", "flow"),
-    "occupancy": ("mapper", "occupancy"),
+    "egomotion": egomotion.NEEDS,
+    "flow": flow.NEEDS,
+    "occupancy": occupancy.NEEDS,
 }
 
 

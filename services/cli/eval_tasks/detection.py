@@ -1,38 +1,28 @@
 """`n3dmap eval detection`: 3D detection AP, in two modes.
 
 - Files: `--pred DIR --gt DIR --out REPORT_DIR [--iou T ...] [--classes C ...]` scores KITTI-format
-  label files (services.cli.eval_detection.run_detection_files_eval); metrics.json holds
-  `detection.<class>.ap3d` / `.apbev` at the top level, as that writer documents.
-- Dataset: `--data DIR --bundle B --out REPORT_DIR` runs the bundle's detector (core.pipeline.detect)
-  on the map of every time step of every record and scores it against the record's boxes in ref_t —
-  the valid ones whose centre lies inside the grid, replaced by their axis-aligned bounding boxes (the
-  paper's detector and its evaluation are axis-aligned; the same ground truth the detector task
-  trains on, core.tasks.detector.gt_boxes_ref). All-point AP at 3D and BEV IoU 0.33 / 0.5 / 0.75
-  (+ any `--iou`), in metrics.json under `metrics.detection.object`.
+  label files (core.eval.protocols.label_files, written by services.cli.eval_detection); metrics.json
+  holds `detection.<class>.ap3d` / `.apbev` at the top level, as that writer documents.
+- Dataset: `--data DIR --bundle B --out REPORT_DIR` runs the bundle's detector on the map of every time
+  step of every record and scores it against the record's axis-aligned boxes in ref_t
+  (core.eval.protocols.detection). All-point AP at 3D and BEV IoU 0.33 / 0.5 / 0.75 (+ any `--iou`),
+  in metrics.json under `metrics.detection.object`.
 """
 
 from __future__ import annotations
 
 import argparse
 
-import numpy as np
-import torch
-
-from core.data.ground_truth import gt_occupancy
-from core.models.detector_boxes import aabb_to_boxes, boxes_to_aabb
-from core.pipeline.detect import detect, detections_per_item
-from core.tasks.detector import gt_boxes_ref
+from core.device import resolve_device
+from core.eval.protocols.detection import CLASS, NEEDS, evaluate
+from core.eval.thresholds import DEFAULT_IOUS, iou_thresholds, threshold_key
 from services.cli.argtypes import positive_int
 from services.cli.eval import (add_rerun_option, check_rerun_option, iter_records, load_bundle_for_eval,
-                               open_rerun_option, print_rerun_option, resolve_device)
-from services.cli.eval_detection import DEFAULT_IOUS, _thresholds, run_detection_files_eval, threshold_key
-from services.cli.eval_tasks.boxes_report import MethodAP, bev_boxes_figure, pr_figure
-from services.cli.eval_tasks.common import record_batch
+                               open_rerun_option, print_rerun_option)
+from services.cli.eval_detection import run_detection_files_eval
+from services.cli.eval_tasks.boxes_report import bev_boxes_figure, pr_figure
 from services.reports import Report
 from services.viz.rerun_paths import FRAME
-
-NEEDS = ("mapper", "detector")
-CLASS = "object"  # the detector is class-agnostic (one anchor class: car-sized objects)
 
 
 def register(kinds) -> None:
@@ -110,39 +100,9 @@ def _fmt(v) -> str:
     return "n/a" if v is None else f"{v:.3f}"
 
 
-def evaluate(bundle, records, *, device, thresholds, recorder=None) -> dict:
-    """Detector AP over every (record, time step): {"ap": MethodAP, "frames", "example"}. `recorder`
-    (services.viz.rerun_eval.EvalRecorder) gets every (record, t): the observed occupancy, the
-    ground-truth boxes scored against and the detections with their scores."""
-    grid = bundle.preset.grid
-    ap = MethodAP(thresholds)
-    frames, example = 0, None
-    for record_index, record in enumerate(records):
-        batch = record_batch(record, device)
-        batch.update({k: torch.as_tensor(np.asarray(record[k]))[None].to(device) for k in ("boxes", "box_valid")})
-        batch["boxes"] = batch["boxes"].float()
-        for t in range(batch["rgb"].shape[1]):
-            out = detect(bundle, batch["rgb"][:, t], batch["depth"][:, t], batch["pix_T_cam"],
-                         batch["world_T_cam"][:, t], batch["world_T_ref"][:, t])
-            pred = detections_per_item(out)[0]
-            boxes_ref, keep = gt_boxes_ref(batch, t, grid)                     # 1×K×7, 1×K
-            gt = aabb_to_boxes(boxes_to_aabb(boxes_ref[0, keep[0]]))          # G×7 axis-aligned, ref_t
-            ap.add_frame(pred["boxes"].double().cpu().numpy(), pred["scores"].double().cpu().numpy(),
-                         gt.double().cpu().numpy())
-            frames += 1
-            if recorder is not None:
-                recorder.log_entry(record=record, record_index=record_index, t0=t,
-                                   occupancy=gt_occupancy(record, t, grid)[0].numpy() > 0.5,
-                                   boxes_true=gt.cpu().numpy(), boxes_pred=pred["boxes"].float().cpu().numpy(),
-                                   scores_pred=pred["scores"].float().cpu().numpy())
-            if example is None:
-                example = (gt.cpu().numpy(), pred["boxes"][:10].cpu().numpy())
-    return {"ap": ap, "frames": frames, "example": example}
-
-
 def build_report(bundle, records, *, device, ious=(), bundle_path=None, data_path=None, max_records=None,
                  recorder=None) -> Report:
-    thresholds = _thresholds(ious)
+    thresholds = iou_thresholds(ious)
     result = evaluate(bundle, records, device=device, thresholds=thresholds, recorder=recorder)
     summary = result["ap"].summary()
     report = Report(kind="detection", title="3D object detection evaluation", bundle=bundle_path, data=data_path,

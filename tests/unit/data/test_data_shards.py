@@ -10,8 +10,8 @@ import tarfile
 import numpy as np
 import pytest
 
-from core.data.shards import (MANIFEST_NAME, ShardDataset, decode_record, encode_record, iter_shard,
-                              load_manifest, write_dataset)
+from core.data.shards import (MANIFEST_NAME, ShardDataset, dataset_shard_paths, decode_record, encode_record,
+                              iter_shard, iter_tar_members, load_manifest, write_dataset)
 from core.errors import DataError
 
 GRID = {"xmin": -16.0, "xmax": 16.0, "ymin": -4.0, "ymax": 4.0, "zmin": -16.0, "zmax": 16.0,
@@ -82,6 +82,22 @@ def test_iter_shard_from_path_and_bytes(tmp_path, records):
     for (_, a), (_, b), want in zip(from_path, from_bytes, records[2:4]):
         _assert_same(a, want)
         _assert_same(b, want)
+
+
+def test_tar_members_are_the_undecoded_records_checked_against_the_manifest(tmp_path, records):
+    """What a Ray read task yields: (key, npz bytes), the bytes decode_record turns into the record."""
+    manifest = _write(tmp_path / "ds", records)
+    paths, keys, _ = dataset_shard_paths(tmp_path / "ds")
+    entry = manifest["shards"][1]
+    assert keys[entry["filename"]] == entry["keys"] and len(paths) == len(manifest["shards"])
+    with open(tmp_path / "ds" / entry["filename"], "rb") as f:
+        members = list(iter_tar_members(f, entry["filename"], entry["keys"]))
+    assert [k for k, _ in members] == ["ep000002", "ep000003"]
+    for (key, payload), want in zip(members, records[2:4]):
+        _assert_same(decode_record(payload, key), want)
+    with open(tmp_path / "ds" / entry["filename"], "rb") as f:
+        msg = _one_line_error(lambda: list(iter_tar_members(f, entry["filename"], ["ep000002"])))
+    assert "shard-00001.tar" in msg and "not in the manifest" in msg
 
 
 def test_deterministic_bytes_and_custom_keys(tmp_path, records):

@@ -144,12 +144,12 @@ def test_bundle_round_trip_and_pipeline_detect(records, tmp_path):
         assert bool((g["scores"] >= 0.02).all())
 
 
-def test_cli_label_subset_holds_the_first_n_records(records, tmp_path):
+def test_label_subset_holds_the_first_n_records(records, tmp_path):
     import numpy as np
 
     from core.data.shards import ShardDataset, write_dataset
-    from services.cli.main import CliError
-    from services.cli.train_tasks.detector import labelled_subset
+    from core.errors import ConfigError
+    from services.training.label_subset import labelled_subset
 
     data = tmp_path / "data"
     write_dataset(data, records, split="train", preset_name="tiny", grid=TINY.grid.to_dict(),
@@ -161,5 +161,5 @@ def test_cli_label_subset_holds_the_first_n_records(records, tmp_path):
     for key, value in source[0].items():
         np.testing.assert_array_equal(subset[0][key], value)
     assert labelled_subset(data, run, 1) == run / "labelled_data"    # a rerun reuses it
-    with pytest.raises(CliError, match="first 1 records"):
+    with pytest.raises(ConfigError, match="first 1 records"):
         labelled_subset(data, run, 2)

@@ -132,7 +132,7 @@ def test_default_boxes_use_observed_voxels_above_the_ground(bundle, one_car_reco
     from core.data.ground_truth import gt_occupancy, points_in_ref
     from core.moving.ground import fit_ground_plane
     from core.pipeline.moving import frame_evidence
-    from core.pipeline.egomotion import rig_cam_T_ref
+    from core.geometry.poses import rig_cam_T_ref
 
     cfg = MovingObjectsConfig(min_speed=0.0)
     pair = _pair(one_car_record, with_ref=True)

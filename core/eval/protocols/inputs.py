@@ -1,0 +1,23 @@
+"""Pipeline inputs from one record: the record as a batch of one, and one pair of its time steps."""
+
+from __future__ import annotations
+
+import torch
+
+from core.data.batch import records_to_batch
+
+_KEYS = ("rgb", "depth", "pix_T_cam", "world_T_cam", "world_T_ref")
+
+
+def record_batch(record: dict, device) -> dict[str, torch.Tensor]:
+    """The image/pose keys of one record as a batch of one (see core.data.batch)."""
+    return records_to_batch([{k: record[k] for k in _KEYS}], device)
+
+
+def pair_inputs(batch: dict[str, torch.Tensor], t0: int, t1: int) -> dict[str, torch.Tensor]:
+    """Keyword inputs of core.pipeline.estimate_egomotion / estimate_flow for steps t0 -> t1."""
+    return {"rgb0": batch["rgb"][:, t0], "depth0": batch["depth"][:, t0], "pix_T_cam0": batch["pix_T_cam"],
+            "world_T_cam0": batch["world_T_cam"][:, t0], "rgb1": batch["rgb"][:, t1],
+            "depth1": batch["depth"][:, t1], "pix_T_cam1": batch["pix_T_cam"],
+            "world_T_cam1": batch["world_T_cam"][:, t1], "world_T_ref0": batch["world_T_ref"][:, t0],
+            "world_T_ref1": batch["world_T_ref"][:, t1]}

@@ -1,0 +1,29 @@
+"""The oracle row of the moving-object evaluation: the true stabilised 3D flow and the true occupancy
+through the 3D method's own post-processing — an upper bound of that post-processing.
+
+Frames (docs/conventions.md#frames): everything is in ref_t of the pair (t, t+1); flow in voxels.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from core.data.ground_truth import gt_flow, gt_occupancy, points_in_ref
+from core.geometry.poses import camera_centres, rig_cam_T_ref
+from core.moving.ground import fit_ground_plane
+from core.pipeline.moving import MovingObjectsConfig, boxes_from_flow
+
+
+def oracle_boxes(record, t: int, grid, config: MovingObjectsConfig) -> dict:
+    """The true stabilised flow and occupancy of pair (t, t+1) through the post-processing of `config`
+    (a batch of one): core.pipeline.moving.boxes_from_flow's dict plus `flow` 1×3×Z×Y×X and `observed`
+    1×1×Z×Y×X."""
+    true_flow = gt_flow(record, t, grid)[None]                                  # 1×3×Z×Y×X
+    xyz, valid = points_in_ref(record, t)                                       # the same ground plane rule
+    ground = [fit_ground_plane(xyz[valid].double().numpy()) if config.ground_margin is not None else None]
+    cam_T_ref = rig_cam_T_ref(torch.as_tensor(record["world_T_cam"][t], dtype=torch.float64)[None],
+                              torch.as_tensor(record["world_T_ref"][t], dtype=torch.float64)[None])  # 1×V×4×4
+    viewpoints = camera_centres(cam_T_ref).float()                              # 1×V×3 camera centres in ref
+    observed = gt_occupancy(record, t, grid)[None]                              # 1×1×Z×Y×X
+    out = boxes_from_flow(true_flow, observed, grid, config, ground=ground, viewpoints=viewpoints)
+    return {**out, "flow": true_flow, "observed": observed}
