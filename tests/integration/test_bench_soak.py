@@ -38,11 +38,15 @@ def test_soak_harness_runs_end_to_end_with_tiny_numbers():
         assert figure in proc.stdout, figure
 
 
-def test_only_2xx_and_429_pass_the_load_verdict():
+def test_only_2xx_and_429_pass_the_load_verdict_and_rss_growth_compares_window_medians():
+    MiB = 2**20
+    # RSS over 0..3 s after a 0 s warm-up: 1 s windows; a spike at the end point alone moves the median little
+    rss = [(0.0, 100 * MiB), (0.5, 140 * MiB), (1.0, 100 * MiB), (2.0, 110 * MiB), (2.5, 110 * MiB), (3.0, 200 * MiB)]
+
     def raw(records):
-        return {"records": records, "failures": [], "rss": [(0.0, 100 * 2**20)], "rss_start": 100 * 2**20,
-                "rss_warm": 100 * 2**20, "warm_t": 0.0, "rss_end": 100 * 2**20, "elapsed": 1.0,
-                "load_before": (0.0,) * 3, "load_after": (0.0,) * 3}
+        return {"records": records, "failures": [], "rss": rss, "rss_start": 90 * MiB, "rss_warm": 100 * MiB,
+                "warm_t": 0.0, "rss_end": 200 * MiB, "elapsed": 3.0, "load_before": (0.0,) * 3,
+                "load_after": (0.0,) * 3}
 
     allowed = [(0.5, "REST", "/v1/map", "200", 0.1), (0.5, "REST", "/v1/map", "429", 0.01),
                (0.5, "gRPC", "Map", "OK", 0.1), (0.5, "gRPC", "Map", "RESOURCE_EXHAUSTED", 0.01)]
@@ -52,3 +56,6 @@ def test_only_2xx_and_429_pass_the_load_verdict():
                (0.5, "gRPC", "Map", "INTERNAL", 0.1), (0.5, "REST", "/v1/map", "422", 0.1)]
     assert set(summarise_load(raw(allowed + refused), clients=2, warmup=0)["disallowed"]) == {
         "REST 500", "REST 504", "REST ReadTimeout", "gRPC DEADLINE_EXCEEDED", "gRPC INTERNAL", "REST 422"}
+    ld = summarise_load(raw(allowed), clients=2, warmup=0)
+    assert ld["rss_window_s"] == 1.0 and ld["rss_growth_pct"] == pytest.approx(10.0)  # medians 100 -> 110 MiB
+    assert ld["rss_growth_point_pct"] == pytest.approx(100.0) and ld["rss_mb"]["peak"] == 200
