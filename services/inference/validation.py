@@ -17,6 +17,7 @@ MAX_VIEWS = 16
 MAX_SIDE = 4096
 RIGID_TOL = 1e-3
 MAX_DEPTH_M = 1000.0
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,8 @@ def _check_matrix(arr: np.ndarray, field: str) -> np.ndarray:
     arr = arr.astype(np.float64)
     if not np.isfinite(arr).all():
         raise InvalidInput(field, "has non-finite entries")
+    if np.abs(arr).max() > FLOAT32_MAX:  # the model takes float32: such an entry would turn into inf there
+        raise InvalidInput(field, f"has entries beyond float32's range (|x| ≤ {FLOAT32_MAX:.3g})")
     if np.abs(arr[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-6:
         raise InvalidInput(field, f"last row must be [0, 0, 0, 1], got {arr[3].tolist()}")
     return arr

@@ -43,6 +43,12 @@ def _reflection():
     return T
 
 
+def _far(z_m: float):
+    T = np.eye(4)
+    T[2, 3] = z_m
+    return T
+
+
 @pytest.mark.parametrize("over,field,needle", [
     ({"rgb": np.zeros((32, 64, 3), np.float32)}, "views[1].rgb", "uint8"),
     ({"rgb": np.zeros((32, 64), np.uint8)}, "views[1].rgb", "H×W×3"),
@@ -55,6 +61,9 @@ def _reflection():
     ({"pix_T_cam": np.where(np.eye(4) > 0, np.inf, 0)}, "views[1].pix_T_cam", "non-finite"),
     ({"world_T_cam": _nonrigid()}, "views[1].world_T_cam", "rigid"),
     ({"world_T_cam": _reflection()}, "views[1].world_T_cam", "rigid"),
+    # finite as float64 but inf once the model's float32 (a JSON body's 1e39 m translation answered null egomotion)
+    ({"world_T_cam": _far(1e39)}, "views[1].world_T_cam", "float32"),
+    ({"pix_T_cam": K * np.diag([1e39, 1, 1, 1])}, "views[1].pix_T_cam", "float32"),
 ])
 def test_bad_views_name_the_field(over, field, needle):
     with pytest.raises(InvalidInput) as e:
