@@ -14,6 +14,20 @@ within ±radius (x, y, z) by cosine similarity, and prints, over the occupied vo
 - sharp: cos(best) − the mean cos over all shifts (how peaked the similarity is).
 A flow module trained on a pair whose moving-voxel `hit` is near zero cannot beat zero motion: the
 motion is not in what it compares. One JSON line per (pair, split) follows the table.
+
+Then, per bundle, a controlled test that separates the encoder from the data: in view 0's input volume of
+t, only the voxels inside the moving objects' boxes are moved by d = 1, 2, 3 voxels along x (the
+vacated voxels emptied), the encoder is run on both, and the cosine of f0(p) with the moved encoding at
+p + d (true shift) and at p (zero shift) is averaged over the objects' occupied voxels. A negative margin
+here means the encoder itself does not let features follow an object (context or aliasing dominate);
+a positive one with a negative margin on real pairs points at the data instead (rays smeared with the
+object's colour, occlusion, multi-view fusion).
+
+Measured (small preset, 64 training records, contrastive pretraining 400 steps × batch 2, 16 test records,
+radius 3 1 3; one seed): real pairs, moving voxels' margin: input volume +0.099, the paper's encoder
+layers −0.070, with a 16-channel full-resolution branch (Encoder3D.full_res) −0.047 (the same with the 3D
+contrastive terms sampled on occupied voxels only: −0.273). Controlled object shift d = 1/2/3: paper
+layers −0.038/−0.028/−0.045, full-resolution branch +0.083/+0.099/+0.155.
 """
 
 from __future__ import annotations
@@ -29,10 +43,11 @@ import torch
 
 from core.bundle import load_bundle
 from core.data.batch import records_to_batch
-from core.data.ground_truth import gt_flow, gt_occupancy
+from core.data.ground_truth import gt_flow, gt_moving_mask, gt_occupancy
 from core.data.shards import ShardDataset
 from core.models.cost_volume import cross_correlation_3d, displacements
 from core.models.egomotion_inputs import fused_input_volume
+from core.models.input_volume import input_volume
 from core.models.normalize import l2_normalize_channels
 from core.presets import get_preset
 from core.tasks.poses import cam_T_ref
@@ -69,6 +84,34 @@ def pair_stats(scores: torch.Tensor, disp: torch.Tensor, flow: torch.Tensor, mov
                      "margin": float((cos_true - cos_zero)[mask].sum()), "sharp": float(sharp[mask].sum())}
     assert D == scores.shape[0]
     return out
+
+
+@torch.no_grad()
+def controlled_object_shift(mapper, records, grid, shifts=(1, 2, 3)) -> dict[int, dict[str, float]]:
+    """Move only the moving objects' input voxels (view 0 of t) by d along x; mean cosines over their occupied
+    voxels of f0(p) with the re-encoded volume at p + d ("true") and at p ("zero"). -> {d: {...}}."""
+    sums: dict[int, list[float]] = {d: [0.0, 0.0, 0] for d in shifts}
+    for rec in records:
+        b = records_to_batch([rec])
+        mask = gt_moving_mask(rec, 0, grid)[None] > 0  # 1×1×Z×Y×X
+        v, _ = input_volume(b["rgb"][0, 0], b["depth"][0, 0], b["pix_T_cam"][0], cam_T_ref(b, 0, 0)[0], grid)  # 1×4×Z×Y×X
+        occ = (v[:, :1] > 0) & mask
+        if int(occ.sum()) == 0:
+            continue
+        f0 = mapper.encoder(v)  # 1×F×Z×Y×X
+        obj = torch.where(mask, v, torch.zeros_like(v))
+        vacated = torch.where(mask, torch.zeros_like(v), v)
+        for d in shifts:
+            moved_obj, moved_mask = torch.zeros_like(obj), torch.zeros_like(mask)
+            moved_obj[..., d:], moved_mask[..., d:] = obj[..., :-d], mask[..., :-d]
+            f1 = mapper.encoder(torch.where(moved_mask, moved_obj, vacated))  # 1×F×Z×Y×X
+            at_true = torch.zeros_like(f1)
+            at_true[..., :-d] = f1[..., d:]  # f1(p + d) stored at p
+            sums[d][0] += float((f0 * at_true).sum(1, keepdim=True)[occ].sum())
+            sums[d][1] += float((f0 * f1).sum(1, keepdim=True)[occ].sum())
+            sums[d][2] += int(occ.sum())
+    return {d: {"cos_true": t / max(n, 1), "cos_zero": z / max(n, 1), "margin": (t - z) / max(n, 1), "voxels": n}
+            for d, (t, z, n) in sums.items()}
 
 
 def main() -> None:
@@ -130,6 +173,14 @@ def main() -> None:
                   f"{row['margin']:+.4f} | {row['sharp']:.3f} |")
     for row in rows:
         print(json.dumps(row))
+    if mappers:
+        print("\ncontrolled object shift (view 0's input: only the moving objects' voxels move d along x):")
+        records = [ds[i] for i in range(min(args.records, len(ds)))]
+        for name, m in mappers.items():
+            for d, r in controlled_object_shift(m, records, grid).items():
+                print(f"| {name:<14} | d={d} | cos true {r['cos_true']:.3f} | cos zero {r['cos_zero']:.3f} | "
+                      f"margin {r['margin']:+.3f} | {r['voxels']} voxels |")
+                print(json.dumps({"pair": name, "controlled_shift": d, **r}))
 
 
 if __name__ == "__main__":
