@@ -21,7 +21,8 @@ mapper (tests/benchmarks/bench_flow_features.py, one seed): moving only an objec
 1/2/3 voxels, the cosine margin of the true shift over zero was −0.04/−0.03/−0.05 with the paper's
 layers and +0.08/+0.10/+0.16 with a 16-channel branch; free-space occupancy accuracy 0.951 → 0.975.
 On real frame pairs the margin stays negative (−0.07 → −0.05), so the branch is necessary for flow over
-maps but not sufficient; it costs about as much as the rest of the encoder at the small preset's width (encoder forward+backward of 8 small-grid volumes, width 16, 1 thread: 0.28 s → 0.54 s).
+maps but not sufficient. It costs about as much as the rest of the encoder at the small preset's width
+(forward+backward of 8 small-grid volumes, width 16, 1 thread: 0.28 s → 0.54 s).
 """
 
 from __future__ import annotations
@@ -49,7 +50,8 @@ class Encoder3D(nn.Module):
         self.normalize = normalize
         self.full_res = int(full_res)
         if self.full_res > 0:
-            self.skip0 = nn.Sequential(Conv3d(in_channels, self.full_res, 3, padding=1), nn.LeakyReLU(0.1, inplace=True))
+            self.skip0 = nn.Sequential(Conv3d(in_channels, self.full_res, 3, padding=1),
+                                       nn.LeakyReLU(0.1, inplace=True))
             self.fuse0 = Conv3d(out_channels + self.full_res, out_channels, 1)
         C = width
         self.down1 = _conv_block(Conv3d(in_channels, C, 4, stride=2, padding=1), C)
