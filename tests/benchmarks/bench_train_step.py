@@ -1,5 +1,6 @@
-"""Benchmark: pretraining train-step time and peak memory per preset (prints figures; not a test).
+"""Benchmark: train-step time and peak memory, per preset or per task (prints figures; not a test).
 
+Pretraining mode (the default, no --tasks):
 CPU: full step (forward + backward + Adam) for `tiny` and `small`; for `paper` only the 3D encoder
 forward+backward at 128×32×128 × 4 channels, batch 1 (a full paper step is GPU work).
 CUDA: the full step at each preset (paper at batch 4) with optional bf16 autocast (--amp), then the
@@ -7,14 +8,53 @@ largest grid (paper grid scaled up in steps) whose full step fits in memory.
 
     python tests/benchmarks/bench_train_step.py --device cpu --preset tiny --steps 5
     python tests/benchmarks/bench_train_step.py --device cuda --preset paper --amp --steps 20
+
+Per-task mode (--tasks, CPU only, presets tiny and small; --preset all = both): for each (task,
+preset) row, every task of core.tasks.build_task (pretrain = contrastive, pretrain_regression =
+pretrain with objective="regression", egomotion, occupancy, flow, detector; flow and detector keep
+their untrained mapper frozen, as built, and flow's default "volume" inputs do not run it) on a batch
+of the preset's batch size of synthetic records (generate_record, moving_ego=True, T=2): --warmup
+untimed steps, then --steps timed steps of forward + backward + Adam (over the parameters that
+require grad, as services/training/loop.py does), each timed alone (median and mean), then
+--profile-steps more steps under torch.profiler (CPU activity). --threads defaults to 1 here (and
+sets OMP_NUM_THREADS/MKL_NUM_THREADS of the row subprocesses).
+
+    python tests/benchmarks/bench_train_step.py --tasks --preset tiny --threads 1 --steps 3
+    python tests/benchmarks/bench_train_step.py --tasks flow,detector --preset small --threads 1
+
+Every row runs in a fresh subprocess (this file with --row), so one row's memory, allocator caches
+and thread pools do not leak into the next. Each row prints one JSON line:
+  {"task", "preset", "threads", "steps", "step_s_median", "step_s_mean", "conv_share", "peak_rss_mb",
+   "top_non_conv": [[op, share], ...], "load_avg", "rss_before_task_mb", "conv_ops"}
+and a table follows the last row.
+- conv_share: convolution ops' share of the self CPU time of the profiled steps (the sum of every
+  op's self time; Python time between ops is not in it). Convolution ops, as counted by
+  tests/benchmarks/step_profile.py (is_conv_op): names containing "convolution" (aten::convolution,
+  aten::_convolution, aten::mkldnn_convolution, aten::convolution_backward,
+  aten::mkldnn_convolution_backward, the autograd nodes ConvolutionBackward0 /
+  MkldnnConvolutionBackward0 and their "autograd::engine::evaluate_function:" wrappers) or "conv" + a
+  digit / "_transpose" / "_depthwise" / "_tbc" (aten::conv2d, aten::conv3d, aten::conv_transpose3d,
+  aten::slow_conv3d, aten::slow_conv3d_forward, aten::thnn_conv2d, aten::_slow_conv2d_forward,
+  aten::_slow_conv2d_backward, ...); "conv_ops" lists the names counted in that row. top_non_conv:
+  the 5 other ops with the most self CPU time, each with its share of the same total. Profiler
+  overhead inflates small ops a little; step times come from the unprofiled steps.
+- peak_rss_mb: the row subprocess's peak resident set (getrusage(RUSAGE_SELF).ru_maxrss) after the
+  timed steps: torch import, record generation and the steps; rss_before_task_mb is the same
+  high-water mark just before the task is built (imports + records), so the difference bounds what
+  the task and its steps added. (tracemalloc misses torch's C++ allocations.)
+- load_avg: os.getloadavg() at the end of the row: on a shared machine, times are only comparable
+  between rows taken under similar load.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import os
 import resource
+import statistics
+import subprocess
 import sys
 import time
 
@@ -28,6 +68,18 @@ from core.models.encoder3d import Encoder3D  # noqa: E402
 from core.presets import get_preset  # noqa: E402
 from core.synthetic import generate_record  # noqa: E402
 from core.tasks import build_task  # noqa: E402
+from tests.benchmarks.step_profile import conv_share, is_conv_op, matched_ops, top_ops  # noqa: E402
+
+# Per-task mode: row name -> (core.tasks name, build_task options).
+TASK_VARIANTS: dict[str, tuple[str, dict]] = {
+    "pretrain": ("pretrain", {"objective": "contrastive"}),
+    "pretrain_regression": ("pretrain", {"objective": "regression"}),
+    "egomotion": ("egomotion", {}),
+    "occupancy": ("occupancy", {}),
+    "flow": ("flow", {}),
+    "detector": ("detector", {}),
+}
+CPU_PRESETS = ("tiny", "small")
 
 
 def _sync(device: str) -> None:
@@ -110,17 +162,131 @@ def largest_grid(preset, *, device: str, amp: bool, objective: str, batch_size: 
         torch.cuda.empty_cache()
 
 
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
+
+
+def profile_task_step(task_name: str, preset_name: str, *, steps: int, warmup: int = 2,
+                      profile_steps: int = 2, threads: int = 1) -> dict:
+    """One per-task row, in this process (see the module docstring); returns the row's dict."""
+    torch.set_num_threads(threads)
+    torch.manual_seed(0)
+    base, options = TASK_VARIANTS[task_name]
+    preset = get_preset(preset_name)
+    records = [generate_record(preset, seed=s, num_frames=2, moving_ego=True)
+               for s in range(preset.train.batch_size)]
+    batch = records_to_batch(records, "cpu")
+    rss_before = _rss_mb()
+    task = build_task(base, preset, seed=0, **options)
+    task.train()
+    opt = torch.optim.Adam([p for p in task.parameters() if p.requires_grad], lr=1e-3)
+
+    def step():
+        out = task(batch)
+        opt.zero_grad(set_to_none=True)
+        out["loss"].backward()
+        opt.step()
+
+    for _ in range(warmup):
+        step()
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        step()
+        times.append(time.perf_counter() - t0)
+    peak = _rss_mb()
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        for _ in range(profile_steps):
+            step()
+    events = list(prof.events())
+    return {
+        "task": task_name, "preset": preset_name, "threads": torch.get_num_threads(), "steps": steps,
+        "step_s_median": statistics.median(times), "step_s_mean": statistics.fmean(times),
+        "conv_share": conv_share(events, is_conv_op), "peak_rss_mb": peak,
+        "top_non_conv": [[name, share] for name, share in top_ops(events, 5, exclude=is_conv_op)],
+        "load_avg": list(os.getloadavg()), "rss_before_task_mb": rss_before,
+        "conv_ops": matched_ops(events, is_conv_op),
+    }
+
+
+def run_row_subprocess(task_name: str, preset_name: str, *, steps: int, warmup: int, profile_steps: int,
+                       threads: int) -> dict:
+    """profile_task_step in a fresh `python this_file --row TASK PRESET` process; returns its row."""
+    cmd = [sys.executable, os.path.abspath(__file__), "--row", task_name, preset_name, "--steps", str(steps),
+           "--warmup", str(warmup), "--profile-steps", str(profile_steps), "--threads", str(threads)]
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if proc.returncode != 0:
+        raise RuntimeError(f"row {task_name}/{preset_name} failed (exit {proc.returncode}):\n"
+                           f"{proc.stdout[-2000:]}{proc.stderr[-4000:]}")
+    line = next(x for x in reversed(proc.stdout.splitlines()) if x.startswith("{"))
+    return json.loads(line)
+
+
+def format_table(rows: list[dict]) -> str:
+    """The rows as a fixed-width table (one line per row, plus a header)."""
+    head = f"{'task':<20} {'preset':<6} {'thr':>3} {'median s':>9} {'mean s':>9} {'conv %':>7} " \
+           f"{'peak RSS MiB':>12}  {'load 1m':>7}  top non-conv op (share)"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        top = r["top_non_conv"][0] if r["top_non_conv"] else ["-", 0.0]
+        lines.append(f"{r['task']:<20} {r['preset']:<6} {r['threads']:>3} {r['step_s_median']:>9.3f} "
+                     f"{r['step_s_mean']:>9.3f} {100 * r['conv_share']:>6.1f}% {r['peak_rss_mb']:>12.0f}  "
+                     f"{r['load_avg'][0]:>7.2f}  {top[0]} ({100 * top[1]:.1f}%)")
+    return "\n".join(lines)
+
+
+def task_mode(args) -> None:
+    if args.device not in (None, "cpu"):
+        raise SystemExit("--tasks runs on CPU only (--device cpu)")
+    names = list(TASK_VARIANTS) if args.tasks == "all" else [t.strip() for t in args.tasks.split(",") if t.strip()]
+    unknown = [t for t in names if t not in TASK_VARIANTS]
+    if unknown:
+        raise SystemExit(f"unknown task(s) {unknown}; choose from {sorted(TASK_VARIANTS)} or 'all'")
+    presets = list(CPU_PRESETS) if args.preset == "all" else [args.preset]
+    if any(p not in CPU_PRESETS for p in presets):
+        raise SystemExit(f"--tasks runs the CPU presets {CPU_PRESETS} (or 'all'), got {args.preset!r}")
+    threads = args.threads or 1
+    print(f"per-task train step: cpu ({threads} threads), torch {torch.__version__}, warmup {args.warmup}, "
+          f"steps {args.steps}, profiled steps {args.profile_steps}, one subprocess per row", flush=True)
+    rows, t0 = [], time.perf_counter()
+    for preset_name in presets:
+        for task_name in names:
+            row = run_row_subprocess(task_name, preset_name, steps=args.steps, warmup=args.warmup,
+                                     profile_steps=args.profile_steps, threads=threads)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    print(format_table(rows))
+    print(f"{len(rows)} rows in {time.perf_counter() - t0:.1f} s wall (subprocess start-up included)")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="all", help="tiny | small | paper | all")
-    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--device", default=None, help="default: cuda if available, else cpu (per-task mode: cpu)")
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--amp", action="store_true", help="torch.autocast bf16")
     ap.add_argument("--objective", default="contrastive", choices=("contrastive", "regression"))
     ap.add_argument("--batch-size", type=int, default=None, help="default: the preset's")
-    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's; per-task mode: 1)")
     ap.add_argument("--largest-grid", action="store_true", help="CUDA: also search the largest grid that fits")
+    ap.add_argument("--tasks", nargs="?", const="all", default=None,
+                    help="per-task mode (CPU): comma-separated tasks of " + ",".join(TASK_VARIANTS) +
+                         " or 'all' (the default when --tasks has no value); --preset tiny | small | all")
+    ap.add_argument("--warmup", type=int, default=2, help="per-task mode: untimed steps first")
+    ap.add_argument("--profile-steps", type=int, default=2, help="per-task mode: steps under torch.profiler")
+    ap.add_argument("--row", nargs=2, metavar=("TASK", "PRESET"), help=argparse.SUPPRESS)  # one row, in-process
     args = ap.parse_args(argv)
+    if args.row:
+        row = profile_task_step(args.row[0], args.row[1], steps=args.steps, warmup=args.warmup,
+                                profile_steps=args.profile_steps, threads=args.threads or 1)
+        print(json.dumps(row), flush=True)
+        return
+    if args.tasks is not None:
+        task_mode(args)
+        return
+    if args.device is None:
+        args.device = "cuda" if torch.cuda.is_available() else "cpu"
     if args.threads:
         torch.set_num_threads(args.threads)
     names = ["tiny", "small", "paper"] if args.preset == "all" else [args.preset]
