@@ -24,7 +24,7 @@ positives at every preset (measured on tiny synthetic records: ≈ 5 positive an
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F

@@ -6,7 +6,6 @@ routes 404 / UNIMPLEMENTED."""
 from __future__ import annotations
 
 import base64
-import json
 import shutil
 import subprocess
 import sys
