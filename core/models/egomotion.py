@@ -42,6 +42,7 @@ from core.errors import check_shape
 from core.geometry import se3
 from core.geometry.grid import GridConfig
 from core.geometry.resample import warp_rigid
+from core.geometry.warp_many import warp_rigid_many
 from core.models.cost_volume import displacements, mean_correlation_3d
 from core.models.egomotion_rotations import candidate_angles, candidate_rotations
 from core.models.encoder3d import Encoder3D
@@ -120,8 +121,12 @@ class EgomotionNet(nn.Module):
         return self.grid if scale == 1.0 else self.grid.scaled(scale)
 
     def warp_query(self, query: torch.Tensor, ref0_T_ref1: torch.Tensor, grid: GridConfig) -> torch.Tensor:
-        """Warp the query volume (ref1) into ref0: query B×C×Z×Y×X, ref0_T_ref1 B×4×4 -> B×C×Z×Y×X."""
-        return warp_rigid(query, se3.invert(ref0_T_ref1), grid)
+        """Warp the query volume (ref1) into ref0: query B×C×Z×Y×X, ref0_T_ref1 B×4×4 -> B×C×Z×Y×X; or one
+        query 1×C×Z×Y×X under R estimates R×4×4 -> R×C×Z×Y×X (the candidates of a scale), through the 2D
+        sampler of core.geometry.warp_many (1.8× faster than the 3D sampler there, equal up to ~1e-4)."""
+        if query.shape[0] == 1 and ref0_T_ref1.shape[0] > 1 and grid.X >= 2:
+            return warp_rigid_many(query, se3.invert(ref0_T_ref1), grid)
+        return warp_rigid(query.expand(ref0_T_ref1.shape[0], *query.shape[1:]), se3.invert(ref0_T_ref1), grid)
 
     def scores(self, reference: torch.Tensor, query: torch.Tensor, estimate: torch.Tensor,
                candidates: torch.Tensor, grid: GridConfig) -> torch.Tensor:
@@ -133,10 +138,10 @@ class EgomotionNet(nn.Module):
         B, C = reference.shape[:2]
         R = candidates.shape[0]
         composed = candidates.unsqueeze(0) @ estimate.unsqueeze(1)  # B×R×4×4: R_i · E
-        q = query.unsqueeze(1).expand(B, R, *query.shape[1:]).reshape(B * R, *query.shape[1:])  # (B·R)×C×Zs×Ys×Xs
-        warped = self.warp_query(q, composed.reshape(B * R, 4, 4), grid)  # (B·R)×C×Zs×Ys×Xs
-        # = cross_correlation_3d(reference, warped_r).mean over space, for every r, in one GEMM
-        s = mean_correlation_3d(reference, warped.reshape(B, R, *warped.shape[1:]), self.radius)  # B×R×D
+        # Each example's ONE query under its R candidates (no R copies of it).
+        warped = torch.stack([self.warp_query(query[b:b + 1], composed[b], grid) for b in range(B)])  # B×R×C×Zs×Ys×Xs
+        # = cross_correlation_3d(reference, warped_r).mean over space, for every r, as one convolution
+        s = mean_correlation_3d(reference, warped, self.radius)  # B×R×D
         s = s.reshape(B, -1)  # B×(R·D), rotation-major as the candidates × displacements
         return (s - s.mean(1, keepdim=True)) / (s.std(1, keepdim=True) + 1e-6)
 
@@ -155,6 +160,33 @@ class EgomotionNet(nn.Module):
         t = -(p.sum(1) @ disp) * grid.voxel_size  # B×3
         return torch.cat([omega, t], dim=1)
 
+    def encode(self, volume: torch.Tensor) -> torch.Tensor:
+        """One input volume B×Cin×Z×Y×X -> the module's own features B×F×Z×Y×X. Each example is encoded on
+        its own (BatchNorm in eval mode), so a stream encodes each frame once and reuses its features as
+        the next pair's reference (`align`)."""
+        check_shape("input volume", volume, (None, self.in_channels, *self.grid.shape_zyx))
+        return self.encoder(volume)
+
+    def align(self, ref_feat: torch.Tensor, query_feat: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The coarse-to-fine alignment of encoded volumes: ref_feat (ref0), query_feat (ref1) B×F×Z×Y×X ->
+        `ref0_T_ref1` B×4×4 and `per_scale` S×B×4×4 (see the module doc)."""
+        check_shape("ref_feat", ref_feat, (None, self.feature_dim, *self.grid.shape_zyx))
+        check_shape("query_feat", query_feat, tuple(ref_feat.shape))
+        B = ref_feat.shape[0]
+        estimate = torch.eye(4, dtype=ref_feat.dtype, device=ref_feat.device).expand(B, 4, 4)
+        per_scale = []
+        for i, (scale, head) in enumerate(zip(self.scales, self.heads)):
+            grid_s = self.scale_grid(scale)
+            ref_s, query_s = pool_to(ref_feat, grid_s), pool_to(query_feat, grid_s)
+            candidates = getattr(self, f"candidates_{i}").to(ref_feat.dtype)
+            scores = self.scores(ref_s, query_s, estimate.detach(), candidates, grid_s)
+            delta = head(scores) * self.update_units(i, grid_s).to(scores.dtype)  # B×6
+            if self.soft_argmax:
+                delta = delta + self.prior_update(scores, i, grid_s)
+            estimate = se3_exp_update(delta) @ estimate.detach()  # B×4×4
+            per_scale.append(estimate)
+        return {"ref0_T_ref1": estimate, "per_scale": torch.stack(per_scale, dim=0)}
+
     def forward(self, reference_input: torch.Tensor, query_input: torch.Tensor) -> dict[str, torch.Tensor]:
         """reference_input (ref0), query_input (ref1): B×Cin×Z×Y×X input volumes.
 
@@ -163,21 +195,8 @@ class EgomotionNet(nn.Module):
         check_shape("reference_input", reference_input, (None, self.in_channels, *self.grid.shape_zyx))
         check_shape("query_input", query_input, tuple(reference_input.shape))
         B = reference_input.shape[0]
-        feats = self.encoder(torch.cat([reference_input, query_input], dim=0))  # 2B×F×Z×Y×X
-        ref_feat, query_feat = feats[:B], feats[B:]
-        estimate = torch.eye(4, dtype=feats.dtype, device=feats.device).expand(B, 4, 4)
-        per_scale = []
-        for i, (scale, head) in enumerate(zip(self.scales, self.heads)):
-            grid_s = self.scale_grid(scale)
-            ref_s, query_s = pool_to(ref_feat, grid_s), pool_to(query_feat, grid_s)
-            candidates = getattr(self, f"candidates_{i}").to(feats.dtype)
-            scores = self.scores(ref_s, query_s, estimate.detach(), candidates, grid_s)
-            delta = head(scores) * self.update_units(i, grid_s).to(scores.dtype)  # B×6
-            if self.soft_argmax:
-                delta = delta + self.prior_update(scores, i, grid_s)
-            estimate = se3_exp_update(delta) @ estimate.detach()  # B×4×4
-            per_scale.append(estimate)
-        return {"ref0_T_ref1": estimate, "per_scale": torch.stack(per_scale, dim=0)}
+        feats = self.encoder(torch.cat([reference_input, query_input], dim=0))  # 2B×F×Z×Y×X (one batch: training)
+        return self.align(feats[:B], feats[B:])
 
 
 def pose_loss(est_T: torch.Tensor, gt_T: torch.Tensor, *, rotation_weight: float = 10.0) -> dict[str, torch.Tensor]:

@@ -17,10 +17,18 @@ from core.models.egomotion_inputs import fused_input_volume
 
 
 def egomotion_from_volumes(net, vol0: torch.Tensor, vol1: torch.Tensor, cam_T_ref0: torch.Tensor,
-                           cam_T_ref1: torch.Tensor) -> dict[str, torch.Tensor]:
+                           cam_T_ref1: torch.Tensor, *,
+                           features: tuple[torch.Tensor | None, torch.Tensor | None] = (None, None)) -> dict[str, torch.Tensor]:
     """The egomotion module on two input volumes B×4×Z×Y×X (each instant in its own ref_t), with
-    cam_T_ref0/1 B×V×4×4 -> `ref0_T_ref1` B×4×4 and `cam0_T_cam1` B×4×4 (view 0's camera)."""
-    ref0_T_ref1 = net(vol0, vol1)["ref0_T_ref1"]  # B×4×4
+    cam_T_ref0/1 B×V×4×4 -> `ref0_T_ref1` B×4×4 and `cam0_T_cam1` B×4×4 (view 0's camera). `features`:
+    the module's encodings of vol0/vol1 (EgomotionNet.encode) when a stream kept them; None = encode here."""
+    f0, f1 = features
+    if f0 is None and f1 is None:
+        ref0_T_ref1 = net(vol0, vol1)["ref0_T_ref1"]  # B×4×4
+    else:
+        f0 = net.encode(vol0) if f0 is None else f0  # B×F'×Z×Y×X
+        f1 = net.encode(vol1) if f1 is None else f1
+        ref0_T_ref1 = net.align(f0, f1)["ref0_T_ref1"]  # B×4×4
     cam0_T_cam1 = cam_T_ref0[:, 0] @ ref0_T_ref1 @ se3.invert(cam_T_ref1[:, 0])
     return {"ref0_T_ref1": ref0_T_ref1, "cam0_T_cam1": cam0_T_cam1}
 

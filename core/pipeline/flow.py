@@ -12,6 +12,8 @@ module the raw flow is returned. `estimate_flow` is the step without a cache, an
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from core.geometry import se3
@@ -43,35 +45,51 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
               world_T_cam0: torch.Tensor, rgb1: torch.Tensor, depth1: torch.Tensor, pix_T_cam1: torch.Tensor,
               world_T_cam1: torch.Tensor, world_T_ref0: torch.Tensor | None = None,
               world_T_ref1: torch.Tensor | None = None, previous: FrameEncoding | None = None,
-              stabilize: str | None = None, egomotion: bool = True, evidence: bool = False,
-              fit_ground: bool = True, occupancy_threshold: float = 0.5,
+              current: FrameEncoding | None = None, ego_estimate: dict[str, torch.Tensor] | None = None,
+              stabilize: str | None = None, egomotion: bool = True,
+              evidence: bool = False,
+              fit_ground: bool = True, occupancy_threshold: float = 0.5, features0: bool | None = None,
               timings: dict[str, float] | None = None) -> dict:
     """Inputs as `estimate_egomotion`, plus `previous`: frame 0's FrameEncoding kept from the step before
-    (or None); stabilize: "egomotion", "poses", "none" or None (egomotion when the bundle has it);
+    (or None); current: frame 1's own-ref FrameEncoding when the caller made it already (a stream encodes
+    each frame as it arrives, beside the step before; only its ego volume and encoding are read here);
+    ego_estimate: this pair's `egomotion_from_volumes` answer when the caller made it already (a stream
+    makes it beside the step before), else the egomotion module runs here;
+    stabilize: "egomotion", "poses", "none" or None (egomotion when the bundle has it);
     egomotion: also estimate cam0_T_cam1 when the bundle can (stabilize="egomotion" always does);
-    evidence / fit_ground: make frame 0's FrameEvidence (boxes need it).
+    evidence / fit_ground: make frame 0's FrameEvidence (boxes need it); features0: make frame 0's mapper
+    map even when nothing here reads it (None: only when needed, core.pipeline.encoding.needs_map).
 
     Returns {"flow": B×3×Z×Y×X (free voxels zeroed), "flow_raw", "ref0_T_ref1": B×4×4 used to stabilise,
     "cam0_T_cam1": B×4×4 (only when the egomotion module ran), "features1": B×F×Z×Y×X in ref0 (only for a
     flow module that compares maps: one comparing input volumes never needs frame 1's map), "previous":
-    frame 0's FrameEncoding, "current": frame 1's (its egomotion volume only)}. `timings` receives seconds
-    per stage: ego_volume, map_previous, evidence_previous, egomotion, map_current, flow.
+    frame 0's FrameEncoding, "current": frame 1's (`current` with its egomotion volume and encoding)}. `timings`
+    receives seconds per stage: ego_volume, ego_encode, map_previous, evidence_previous, egomotion,
+    map_current, flow.
     """
     stabilize = resolve_stabilise(bundle, stabilize)
     mapper, flow_net = bundle.require("mapper"), bundle.require("flow")
     run_ego = "egomotion" in bundle.modules and (egomotion or stabilize == "egomotion")
     enc0 = encode_previous(bundle, rgb=rgb0, depth=depth0, pix_T_cam=pix_T_cam0, world_T_cam=world_T_cam0,
                            world_T_ref=world_T_ref0, cached=previous, ego_volume=run_ego, evidence=evidence,
-                           fit_ground=fit_ground, timings=timings)
+                           fit_ground=fit_ground, features=features0, timings=timings)
     watch = Stopwatch(timings)
     cam_T_ref0 = rig_cam_T_ref(world_T_cam0, world_T_ref0)  # B×V×4×4
     cam1_T_ref1 = rig_cam_T_ref(world_T_cam1, world_T_ref1)  # B×V×4×4
-    out: dict = {"previous": enc0, "current": FrameEncoding()}
+    current = FrameEncoding() if current is None else replace(current)
+    out: dict = {"previous": enc0, "current": current}
     if run_ego:
         net = bundle.modules["egomotion"]
-        out["current"].ego_volume = fused_input_volume(rgb1, depth1, pix_T_cam1, cam1_T_ref1, net.grid)  # B×4×Z×Y×X
-        watch.lap("ego_volume")
-        ego = egomotion_from_volumes(net, enc0.ego_volume, out["current"].ego_volume, cam_T_ref0, cam1_T_ref1)
+        if current.ego_volume is None:
+            current.ego_volume = fused_input_volume(rgb1, depth1, pix_T_cam1, cam1_T_ref1, net.grid)  # B×4×Z×Y×X
+            watch.lap("ego_volume")
+        if current.ego_features is None:
+            current.ego_features = net.encode(current.ego_volume)  # B×F'×Z×Y×X, the next pair's reference
+            watch.lap("ego_encode")
+        ego = ego_estimate
+        if ego is None:
+            ego = egomotion_from_volumes(net, enc0.ego_volume, current.ego_volume, cam_T_ref0, cam1_T_ref1,
+                                         features=(enc0.ego_features, current.ego_features))
         out["cam0_T_cam1"] = ego["cam0_T_cam1"]
         watch.lap("egomotion")
     if stabilize == "egomotion":
@@ -90,7 +108,8 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
     raw = flow_net(*flow_pair(flow_net, mapper.grid, features=(enc0.features, f1), rgb=(rgb0, rgb1),
                               depth=(depth0, depth1), pix_T_cam=(pix_T_cam0, pix_T_cam1),
                               cam_T_ref0=(cam_T_ref0, cam1_T_ref0),
-                              volumes=(enc0.ego_volume if same_grid else None, None)))["flow"]  # B×3×Z×Y×X
+                              volumes=(enc0.ego_volume if same_grid else None, None)),
+                   encoded0=enc0.flow_encoded)["flow"]  # B×3×Z×Y×X
     flow = raw if enc0.occupancy is None else raw * (enc0.occupancy >= occupancy_threshold).to(raw.dtype)
     watch.lap("flow")
     out.update(flow=flow, flow_raw=raw, ref0_T_ref1=ref0_T_ref1)
@@ -111,7 +130,7 @@ def estimate_flow(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam
     out = flow_step(bundle, rgb0=rgb0, depth0=depth0, pix_T_cam0=pix_T_cam0, world_T_cam0=world_T_cam0,
                     rgb1=rgb1, depth1=depth1, pix_T_cam1=pix_T_cam1, world_T_cam1=world_T_cam1,
                     world_T_ref0=world_T_ref0, world_T_ref1=world_T_ref1, stabilize=stabilize, egomotion=False,
-                    occupancy_threshold=occupancy_threshold)
+                    occupancy_threshold=occupancy_threshold, features0=True)
     enc0 = out["previous"]
     result = {k: out[k] for k in ("flow", "flow_raw", "ref0_T_ref1", "features1") if k in out}
     result["features0"] = enc0.features

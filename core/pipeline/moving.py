@@ -38,27 +38,31 @@ def moving_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0:
                 world_T_cam0: torch.Tensor, rgb1: torch.Tensor, depth1: torch.Tensor,
                 pix_T_cam1: torch.Tensor, world_T_cam1: torch.Tensor,
                 world_T_ref0: torch.Tensor | None = None, world_T_ref1: torch.Tensor | None = None,
-                previous: FrameEncoding | None = None, stabilize: str | None = None,
+                previous: FrameEncoding | None = None, current: FrameEncoding | None = None,
+                ego_estimate: dict[str, torch.Tensor] | None = None, stabilize: str | None = None,
                 config: MovingObjectsConfig | None = None, dt: float | Sequence[float] | None = None,
                 timings: dict[str, float] | None = None) -> dict:
     """rgb0/1: B×V×3×H×W in [0,1]; depth0/1: B×V×H×W metres; pix_T_cam0/1, world_T_cam0/1: B×V×4×4;
     world_T_ref0/1: B×4×4 or None (camera of view 0). previous: frame 0's FrameEncoding from the step
-    before, or None. stabilize: "egomotion", "poses", "none" or None (egomotion when the bundle has it).
+    before, or None; current, ego_estimate: frame 1's own-ref FrameEncoding and the pair's egomotion when
+    made already (see core.pipeline.flow.flow_step). stabilize: "egomotion", "poses", "none" or None
+    (egomotion when the bundle has it).
     dt: seconds from t0 to t1, one per batch item or one for all (None: `config.dt`).
 
     Returns {"boxes": B×K×7 canonical in ref0, "scores": B×K center-surround saliency in [−1, 1],
     "valid": B×K bool, "velocities": B×K×3 m/s in ref0, "flow": B×3×Z×Y×X (stabilised, free voxels
     zeroed), "ref0_T_ref1": B×4×4 used to stabilise, "cam0_T_cam1": B×4×4 (the egomotion route's answer;
-    only with an egomotion module), "current": FrameEncoding of frame 1 (its ego volume only)}.
+    only with an egomotion module), "current": FrameEncoding of frame 1 (`current`, with its ego volume and
+    encoding)}.
     `timings` (a dict) receives seconds per stage: ego_volume, map_previous, evidence_previous, egomotion,
     map_current (only for a flow module that compares feature maps), flow, boxes.
     """
     cfg = config or MovingObjectsConfig()
     out = flow_step(bundle, rgb0=rgb0, depth0=depth0, pix_T_cam0=pix_T_cam0, world_T_cam0=world_T_cam0,
                     rgb1=rgb1, depth1=depth1, pix_T_cam1=pix_T_cam1, world_T_cam1=world_T_cam1,
-                    world_T_ref0=world_T_ref0, world_T_ref1=world_T_ref1, previous=previous, stabilize=stabilize,
-                    evidence=True, fit_ground=cfg.ground_margin is not None, occupancy_threshold=cfg.occupied_above,
-                    timings=timings)
+                    world_T_ref0=world_T_ref0, world_T_ref1=world_T_ref1, previous=previous, current=current,
+                    ego_estimate=ego_estimate, stabilize=stabilize, evidence=True,
+                    fit_ground=cfg.ground_margin is not None, occupancy_threshold=cfg.occupied_above, timings=timings)
     enc0 = out.pop("previous")
     watch = Stopwatch(timings)
     found = boxes_from_flow(out["flow"], box_occupancy(cfg, enc0.occupancy, enc0.evidence),

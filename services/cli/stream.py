@@ -43,6 +43,10 @@ def register(subparsers) -> None:
                              "components are split or dropped, partial ones completed (default: visible boxes); "
                              "`n3dmap eval moving` estimates it without labels and prints it in its report")
     bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
+    bridge.add_argument("--no-lookahead", dest="lookahead", action="store_false",
+                        help="one worker thread only: no look-ahead thread encoding the next frame and its "
+                             "egomotion beside the current step (that thread is what lets the small preset "
+                             "keep up with 10 Hz on 2 cores)")
     bridge.add_argument("--bridge-id", default=None, help="id in the liveliness token and status key (default: random)")
     bridge.add_argument("--duration", type=positive_float, default=None, metavar="S",
                         help="stop after S seconds (default: run until SIGINT/SIGTERM)")
@@ -143,7 +147,8 @@ def _run_bridge(args: argparse.Namespace) -> int:
     except ValueError as e:
         raise CliError(str(e)) from None
     stop = _stop_event()
-    bridge = Bridge(processor=processor, zenoh_options=options, cameras=args.cameras, bridge_id=args.bridge_id)
+    bridge = Bridge(processor=processor, zenoh_options=options, cameras=args.cameras, bridge_id=args.bridge_id,
+                    lookahead=args.lookahead)
     bridge.start()
     print(f"bridge {bridge.bridge_id} ready: bundle {runtime.version}, modules {', '.join(runtime.modules)}, "
           f"zenoh {options.mode} listen={list(options.listen)} connect={list(options.connect)}", file=sys.stderr, flush=True)

@@ -26,7 +26,9 @@ import torch
 
 from core.moving.amodal import SizePrior
 from core.pipeline import encode_previous, moving_step
-from core.pipeline.encoding import FrameEncoding
+from core.geometry.poses import rig_cam_T_ref
+from core.pipeline.egomotion import egomotion_from_volumes
+from core.pipeline.encoding import FrameEncoding, is_complete
 from core.pipeline.moving_boxes import MovingObjectsConfig
 from n3dmap.v1 import inference_pb2, types_pb2
 from services.inference import codecs
@@ -36,6 +38,20 @@ from services.inference.validation import View, stack_views
 from services.inference.wire import detections_proto
 
 STAGE_WINDOW = 512  # per-stage timings kept for the status percentiles
+
+
+@dataclass(frozen=True)
+class AheadEncoding:
+    """What `MovingStream.encode_ahead` made of a frame before its step, tagged with the frame and the bundle
+    version so that a step uses it only for that frame and that bundle (a hot reload never mixes stale
+    tensors in): its own-ref FrameEncoding, and the egomotion from `ego_previous` (the frame expected to
+    be its step's previous frame) to it, when that was known."""
+
+    frame: View
+    bundle_version: str
+    encoding: FrameEncoding
+    ego_previous: View | None = None
+    ego_estimate: dict | None = None  # core.pipeline.egomotion.egomotion_from_volumes' answer (B = 1)
 
 
 @dataclass(frozen=True)
@@ -65,6 +81,7 @@ class MovingStream:
         self.reuse = reuse
         self._stages: dict[str, deque] = {}
         self._stages_lock = threading.Lock()
+        self._warm: set[tuple] = set()  # (bundle version, image size) pairs already warmed up
 
     # -- the per-camera cache ----------------------------------------------------------------------
     def _cached(self, state: CameraState, sequence: int, version: str) -> FrameEncoding | None:
@@ -83,7 +100,7 @@ class MovingStream:
             return
         bundle, version = self.runtime.bundle, self.runtime.version
         cached = self._cached(state, previous.sequence, version)
-        if cached is not None and cached.features is not None:
+        if is_complete(cached, bundle):
             return
         timings: dict[str, float] = {}
         with torch.inference_mode():
@@ -92,18 +109,74 @@ class MovingStream:
         self._remember(state, previous.sequence, version, encoding)
         self._record({f"idle_{k}": v for k, v in timings.items()})
 
+    def encode_ahead(self, frame: View, previous: AheadEncoding | None = None) -> AheadEncoding:
+        """What of `frame`'s step can be made before the step before it has finished (the bridge runs this
+        on a second thread): what the step reads of its frame 1 (the egomotion volume and its encoding)
+        and, given `previous` (the look-ahead of the frame the step will most likely pair it with), the
+        pair's egomotion. A step uses the egomotion only if its previous frame is that very frame. The rest
+        of the frame's own work (its depth evidence, the flow module's encoding, the map), which only the
+        step after reads, is left to `prepare` on the worker, which has the time to spare: the two threads
+        then carry about equal shares. Safe beside `step`: both only read the bundle."""
+        bundle, version = self.runtime.bundle, self.runtime.version
+        timings: dict[str, float] = {}
+        tensors = views_tensors([stack_views([frame], "frame")], self.runtime.device)
+        ego_previous, ego_estimate = None, None
+        with torch.inference_mode():
+            encoding = encode_previous(bundle, **tensors, evidence=False, features=False, flow_encoding=False,
+                                       timings=timings)
+            usable = (previous is not None and previous.bundle_version == version and "egomotion" in bundle.modules
+                      and previous.frame.depth.shape == frame.depth.shape
+                      and previous.encoding.ego_features is not None and encoding.ego_features is not None)
+            if usable:
+                started = time.perf_counter()
+                before = views_tensors([stack_views([previous.frame], "previous")], self.runtime.device)
+                ego_estimate = egomotion_from_volumes(
+                    bundle.modules["egomotion"], previous.encoding.ego_volume, encoding.ego_volume,
+                    rig_cam_T_ref(before["world_T_cam"], None), rig_cam_T_ref(tensors["world_T_cam"], None),
+                    features=(previous.encoding.ego_features, encoding.ego_features))
+                ego_previous = previous.frame
+                timings["egomotion"] = time.perf_counter() - started
+        self._record({f"ahead_{k}": v for k, v in timings.items()})
+        return AheadEncoding(frame=frame, bundle_version=version, encoding=encoding, ego_previous=ego_previous,
+                             ego_estimate=ego_estimate)
+
+    def _warm_up(self, bundle, version: str, frame: View) -> None:
+        """Run one throwaway pair step (the frame with itself) the first time a bundle meets an image size.
+        Why: the first steps pay one-time costs (oneDNN builds its kernels for each new shape, the allocator
+        grows its heap); measured at the small preset, the first three answered frames took 187–233 ms
+        end to end against a median of 121 ms. A camera's first frame has no pair to answer, so its
+        (empty) answer carries that cost instead of the first real answers."""
+        key = (version, tuple(frame.depth.shape))
+        with self._stages_lock:
+            if key in self._warm:
+                return
+            self._warm.add(key)
+        started = time.perf_counter()
+        with torch.inference_mode():
+            moving_step(bundle, **pair_tensors([stack_views([frame], "frame")], [stack_views([frame], "frame")],
+                                               self.runtime.device), config=self.config, dt=self.frame_dt)
+        self._record({"warm_up": time.perf_counter() - started})
+
     # -- one frame -----------------------------------------------------------------------------------
-    def step(self, camera: str, state: CameraState, frame: View) -> StepAnswer:
-        """The answer to `frame`, the camera's next frame (state.previous: the one before, or None). Raises
-        InvalidInput when the pair cannot be answered without guessing (a clock that does not advance,
-        missing poses a bundle without egomotion needs)."""
+    def step(self, camera: str, state: CameraState, frame: View, ahead: AheadEncoding | None = None) -> StepAnswer:
+        """The answer to `frame`, the camera's next frame (state.previous: the one before, or None); `ahead`:
+        the frame's `encode_ahead`, when made. Raises InvalidInput when the pair cannot be answered without
+        guessing (a clock that does not advance, missing poses a bundle without egomotion needs)."""
         started = time.perf_counter()
         bundle, version = self.runtime.bundle, self.runtime.version  # one bundle for the whole step
         views1 = stack_views([frame], "frame")
+        current, ego_estimate = None, None
         previous = state.previous
+        if self.reuse and ahead is not None and ahead.bundle_version == version and ahead.frame is frame:
+            current = ahead.encoding
+            if previous is not None and ahead.ego_previous is previous:
+                ego_estimate = ahead.ego_estimate
         if previous is None or previous.depth.shape != frame.depth.shape:
             # First frame of this camera (or its image size changed): nothing to compare with yet.
             state.extra.clear()
+            if current is not None:  # but its own-ref work is the next step's frame 0
+                self._remember(state, frame.sequence, version, current)
+            self._warm_up(bundle, version, frame)
             empty = types_pb2.Detections(frame=BOX_FRAME, bundle_version=version, camera_id=camera,
                                          sequence=frame.sequence, source_timestamp=frame.timestamp,
                                          world_T_frame=codecs.numpy_to_tensor(frame.world_T_cam))
@@ -114,7 +187,8 @@ class MovingStream:
         timings: dict[str, float] = {}
         with torch.inference_mode():
             out = moving_step(bundle, **pair_tensors([views0], [views1], self.runtime.device), config=self.config,
-                              previous=self._cached(state, previous.sequence, version), dt=dt, timings=timings)
+                              previous=self._cached(state, previous.sequence, version), current=current,
+                              ego_estimate=ego_estimate, dt=dt, timings=timings)
         # This frame's own-ref work (its egomotion volume) is the next step's previous-frame cache.
         self._remember(state, frame.sequence, version, out["current"])
         egomotion = None

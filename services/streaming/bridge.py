@@ -9,6 +9,17 @@ them), runs the processor and publishes. Every received sample ends in exactly o
 (see accounting.py): a payload that does not decode, or that the processor refuses as input, is malformed;
 any other failure while processing counts as a processing error; nothing kills the worker.
 
+Look-ahead (on by default when the processor has `encode_ahead`): a second thread decodes each parked
+frame and makes its own-frame work (`encode_ahead`: nothing in it depends on another frame) while the
+worker still runs the step before, so the two cores share a frame's work: the worker's step is left with
+the pair work only. The look-ahead also hands the processor the look-ahead of the frame the worker took
+last for that camera (the frame the step will most likely pair this one with), so that it can make the
+pair's egomotion too; the processor checks that the pairing held before using it. The worker takes a frame only once the look-ahead has finished with it, and does
+the work itself only where the look-ahead failed; a frame replaced in its slot before the worker reached it is
+dropped as before, and its look-ahead work is wasted, never published. Why: at the small preset the
+frame's own work (egomotion volume and encoding, the flow module's encoding of it, its depth evidence)
+was about a third of a step, and one core could not keep up with a 10 Hz camera.
+
 Publisher restarts are recognised by the publisher id each camera puts in the sample attachment
 (`pub=<id>`): a new id resets that camera's state instead of reading as out-of-order frames.
 """
@@ -21,7 +32,7 @@ import logging
 import threading
 import time
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Protocol
 
 import zenoh
@@ -40,11 +51,16 @@ class MalformedFrame(ValueError):
 
 @dataclass
 class Parked:
-    """A received sample waiting for the worker."""
+    """A received sample waiting for the worker; the look-ahead thread fills the last four fields."""
 
     payload: bytes
     attachment: bytes | None
     received_at: float
+    claimed: bool = False                    # the look-ahead thread took it (set under the bridge's lock)
+    done: threading.Event = field(default_factory=threading.Event)  # set when the look-ahead finished
+    frame: object | None = None              # the decoded frame
+    malformed: MalformedFrame | None = None  # or why it does not decode
+    ahead: object | None = None              # processor.encode_ahead(frame), None if it failed
 
 
 @dataclass
@@ -65,7 +81,9 @@ class FrameProcessor(Protocol):
         MalformedFrame for a frame it refuses as input."""
 
     # Optional: `prepare(camera, state)` runs on the worker when no frame waits (after a frame was
-    # processed and state.previous set), and `stats() -> dict` adds to the status JSON.
+    # processed and state.previous set); `encode_ahead(frame, previous) -> object` runs on the look-ahead
+    # thread (previous: the result for the frame the worker took last of that camera, or None) and its
+    # result reaches `process(camera, state, frame, ahead)`; `stats() -> dict` adds to the status JSON.
 
 
 def publisher_id_of(attachment: bytes | None) -> str | None:
@@ -83,7 +101,10 @@ class Bridge:
     `n3dmap/<camera>/moving_objects` and `n3dmap/<camera>/egomotion`."""
 
     def __init__(self, *, processor: FrameProcessor, zenoh_options: ZenohOptions, cameras: str = "*",
-                 bridge_id: str | None = None, clock: Callable[[], float] = time.time) -> None:
+                 bridge_id: str | None = None, clock: Callable[[], float] = time.time,
+                 lookahead: bool = True) -> None:
+        """lookahead: run the processor's `encode_ahead` on a second thread (see the module doc); ignored
+        for a processor without it."""
         self.processor = processor
         self.zenoh_options = zenoh_options
         self.cameras = cameras
@@ -95,6 +116,9 @@ class Bridge:
         self._cond = threading.Condition()
         self._stopping = False
         self._worker: threading.Thread | None = None
+        self._lookahead: threading.Thread | None = None
+        self._taken: dict[str, Parked] = {}  # per camera: the frame the worker took last
+        self.lookahead = lookahead and hasattr(processor, "encode_ahead")
         self._session: zenoh.Session | None = None
         self._declared: list = []
         self._publishers: dict[tuple[str, str], zenoh.Publisher] = {}
@@ -106,6 +130,9 @@ class Bridge:
         self._session = open_session(self.zenoh_options)
         self._worker = threading.Thread(target=self._work, name="n3dmap-bridge-worker", daemon=True)
         self._worker.start()
+        if self.lookahead:
+            self._lookahead = threading.Thread(target=self._look_ahead, name="n3dmap-bridge-lookahead", daemon=True)
+            self._lookahead.start()
         session = self._session
         self._declared.append(session.declare_subscriber(keys.rgbd("*"), self._on_sample))
         self._declared.append(session.declare_queryable(keys.bridge_status(self.bridge_id), self._on_status))
@@ -124,8 +151,9 @@ class Bridge:
         with self._cond:
             self._stopping = True
             self._cond.notify_all()
-        if self._worker is not None:
-            self._worker.join(timeout=30)
+        for thread in (self._worker, self._lookahead):
+            if thread is not None:
+                thread.join(timeout=30)
         for pub in self._publishers.values():
             pub.undeclare()
         self._publishers.clear()
@@ -161,7 +189,7 @@ class Bridge:
                 self.accounting.update(camera, received=1, dropped=1, dropped_behind=1)
             else:
                 self.accounting.update(camera, received=1, pending=1)
-            self._cond.notify()
+            self._cond.notify_all()  # the worker and the look-ahead thread both wait on it
 
     def _on_status(self, query: zenoh.Query) -> None:
         query.reply(query.key_expr, json.dumps(self.status()))
@@ -176,14 +204,53 @@ class Bridge:
 
     # -- worker ------------------------------------------------------------------------------------
     def _next(self) -> tuple[str, Parked] | None:
+        """The next frame for the worker. With look-ahead, only a frame the look-ahead thread has finished:
+        the worker never races it for a new frame (the two would then run one frame's work in series and
+        leave a core idle)."""
         with self._cond:
-            while not self._slots and not self._stopping:
+            while True:
+                if self._stopping:
+                    return None
+                ready = [c for c, p in self._slots.items() if not self.lookahead or p.done.is_set()]
+                if ready:
+                    break
                 self._cond.wait(timeout=0.5)
-            if self._stopping:
-                return None
             # Oldest-parked camera first, so one busy camera cannot starve the others.
-            camera = min(self._slots, key=lambda c: self._slots[c].received_at)
-            return camera, self._slots.pop(camera)
+            camera = min(ready, key=lambda c: self._slots[c].received_at)
+            parked = self._slots.pop(camera)
+            self._taken[camera] = parked
+        return camera, parked
+
+    def _look_ahead(self) -> None:
+        """Decode and encode the newest unclaimed parked frame, beside the worker (see the module doc)."""
+        while True:
+            with self._cond:
+                while not self._stopping and not any(not p.claimed for p in self._slots.values()):
+                    self._cond.wait(timeout=0.5)
+                if self._stopping:
+                    return
+                camera, parked = max(((c, p) for c, p in self._slots.items() if not p.claimed),
+                                     key=lambda item: item[1].received_at)
+                parked.claimed = True
+                before = self._taken.get(camera)
+            try:
+                self._decode(parked)
+                if parked.frame is not None:
+                    # `before` was made by this thread (then it is done) or decoded by the worker (no ahead).
+                    previous = before.ahead if before is not None and before.done.is_set() else None
+                    parked.ahead = self.processor.encode_ahead(parked.frame, previous)
+            except Exception:  # the worker then does the work itself; nothing is lost
+                log.exception("look-ahead encoding failed; the worker will redo it")
+            finally:
+                with self._cond:
+                    parked.done.set()
+                    self._cond.notify_all()
+
+    def _decode(self, parked: Parked) -> None:
+        try:
+            parked.frame = self.processor.decode(parked.payload)
+        except MalformedFrame as e:
+            parked.malformed = e
 
     def _work(self) -> None:
         while True:
@@ -204,13 +271,14 @@ class Bridge:
 
     def _prepare_while_idle(self, camera: str) -> None:
         """Let the processor get ahead on the camera's next step (e.g. encode the frame just
-        processed) — only when no frame is waiting, so it never delays one that is."""
+        processed) — only when no frame is ready for the worker, so it never delays one that is (with
+        look-ahead, a frame still being encoded by the look-ahead thread is not ready)."""
         prepare = getattr(self.processor, "prepare", None)
         state = self._states.get(camera)
         if prepare is None or state is None:
             return
         with self._cond:
-            if self._slots or self._stopping:
+            if self._stopping or any(not self.lookahead or p.done.is_set() for p in self._slots.values()):
                 return
         try:
             prepare(camera, state)
@@ -218,12 +286,13 @@ class Bridge:
             log.exception("preparing the next step of camera %s failed", camera)
 
     def _handle(self, camera: str, parked: Parked) -> None:
-        try:
-            frame = self.processor.decode(parked.payload)
-        except MalformedFrame as e:
-            log.warning("malformed frame from camera %s: %s", camera, e)
+        if parked.frame is None and parked.malformed is None:
+            self._decode(parked)  # not decoded yet (or the look-ahead failed): here, where errors are counted
+        if parked.malformed is not None:
+            log.warning("malformed frame from camera %s: %s", camera, parked.malformed)
             self.accounting.update(camera, malformed=1)
             return
+        frame = parked.frame
         if getattr(frame, "camera_id", camera) not in ("", camera):
             log.warning("frame on %s names camera %r; counted as malformed", keys.rgbd(camera), frame.camera_id)
             self.accounting.update(camera, malformed=1)
@@ -242,7 +311,10 @@ class Bridge:
             self.accounting.update(camera, dropped=1, **{f"dropped_{kind}": 1})
             return
         try:
-            outputs = self.processor.process(camera, state, frame)
+            if parked.ahead is not None:
+                outputs = self.processor.process(camera, state, frame, parked.ahead)
+            else:
+                outputs = self.processor.process(camera, state, frame)
         except MalformedFrame as e:  # decoded, but the processor cannot answer it (e.g. its clock went back)
             log.warning("malformed frame %d from camera %s: %s", seq, camera, e)
             self.accounting.update(camera, malformed=1)

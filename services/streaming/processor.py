@@ -47,9 +47,9 @@ class RuntimeProcessor(MovingStream):
         except InvalidInput as e:
             raise MalformedFrame(str(e)) from None
 
-    def process(self, camera: str, state: CameraState, frame: View) -> Outputs:
+    def process(self, camera: str, state: CameraState, frame: View, ahead=None) -> Outputs:
         try:
-            answer = self.step(camera, state, frame)
+            answer = self.step(camera, state, frame, ahead)
         except InvalidInput as e:
             raise MalformedFrame(str(e)) from None
         return Outputs(moving_objects=answer.detections.SerializeToString(),

@@ -130,7 +130,8 @@ def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
     load_before = os.getloadavg()
     bridge, bridge_out, bridge_err = start(
         ["bridge", "--bundle", str(bundle), "--listen", endpoint, "--bridge-id", f"bench-{preset}",
-         "--threads", str(args.threads), "--device", "cpu", "--status-every", "0"], work, f"bridge_{preset}")
+         "--threads", str(args.threads), "--device", "cpu", "--status-every", "0",
+         *([] if args.lookahead else ["--no-lookahead"])], work, f"bridge_{preset}")
     listener = camera = None
     try:
         wait_for(lambda: "ready" in bridge_err.read_text() or bridge.poll() is not None, 300, "the bridge")
@@ -162,7 +163,7 @@ def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
     received_at = np.array([d["source_timestamp"] + d["end_to_end_ms"] / 1000.0 for d in lines])
     span = float(received_at[-1] - received_at[0]) if len(lines) > 1 else float("nan")
     return {
-        "preset": preset, "rate_hz": args.rate, "threads": args.threads,
+        "preset": preset, "rate_hz": args.rate, "threads": args.threads, "lookahead": args.lookahead,
         "sent": counts.get("received"), "processed": counts.get("processed"), "dropped": counts.get("dropped"),
         "malformed": counts.get("malformed"), "processing_errors": counts.get("processing_errors"),
         "pending": counts.get("pending"),
@@ -173,6 +174,8 @@ def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
         "sustained_fps": round((len(lines) - 1) / span, 2) if len(lines) > 1 and span > 0 else None,
         "e2e_ms_p50": round(float(np.percentile(e2e, 50)), 1) if e2e.size else None,
         "e2e_ms_p99": round(float(np.percentile(e2e, 99)), 1) if e2e.size else None,
+        "e2e_ms_max": round(float(e2e.max()), 1) if e2e.size else None,
+        "e2e_ms_first3": [round(float(x), 1) for x in e2e[:3]],  # the warm-up shows here
         "bridge_cpu_s_per_processed": round(cpu_used / max(1, counts.get("processed", 1)), 3),
         "bridge_cpu_s": round(cpu_used, 2),
         "stages_ms": {k: v["p50"] for k, v in final.get("stages_ms", {}).items()},
@@ -188,6 +191,8 @@ def main(argv=None) -> int:
     parser.add_argument("--rate", type=float, default=10.0, help="camera frames per second")
     parser.add_argument("--frames", type=int, default=60, help="frames the camera publishes per preset")
     parser.add_argument("--threads", type=int, default=1, help="the bridge's torch threads")
+    parser.add_argument("--no-lookahead", dest="lookahead", action="store_false",
+                        help="run the bridge without its look-ahead thread (for comparison)")
     parser.add_argument("--drain-s", type=float, default=5.0, help="wait after the last frame before stopping")
     for name in ("tiny", "small", "paper"):
         parser.add_argument(f"--bundle-{name}", default=None, help=f"bundle for the {name} preset (default: fresh)")

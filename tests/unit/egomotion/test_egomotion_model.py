@@ -58,11 +58,10 @@ def test_module_warps_the_original_query_by_the_composed_estimate(monkeypatch):
     with torch.no_grad():
         out = net(ref_in, query_in)
         query_feat = net.encoder(query_in)
-    assert len(calls) == 2  # one batched warp of all candidates per scale
+    assert len(calls) == 2  # one warp of the query under all candidates per scale (batch 1)
     R = 3
     for i, (query, transforms, grid) in enumerate(calls):
-        expected_query = pool_to(query_feat, grid).expand(R, -1, -1, -1, -1)
-        torch.testing.assert_close(query, expected_query)  # the ORIGINAL (pooled) query, never a warp
+        torch.testing.assert_close(query, pool_to(query_feat, grid))  # the ORIGINAL (pooled) query, never a warp
         estimate_in = torch.eye(4)[None] if i == 0 else out["per_scale"][0]
         candidates = getattr(net, f"candidates_{i}")
         torch.testing.assert_close(transforms, candidates @ estimate_in.expand(R, 4, 4), atol=1e-5, rtol=1e-5)
@@ -145,3 +144,21 @@ def test_pose_loss_hand_case():
     # chordal ‖R_e − R_g‖_F/√2 = 2 sin(θ/2) for a rotation by θ
     assert float(loss["rotation"]) == pytest.approx(2 * math.sin(0.05), abs=1e-5)
     assert float(loss["translation"]) == pytest.approx(0.5, abs=1e-6)
+
+
+def test_encode_then_align_is_the_forward():
+    """A stream encodes each frame once (`encode`) and aligns kept encodings (`align`): in eval mode that is
+    the forward pass, which encodes both volumes in one batch."""
+    torch.manual_seed(0)
+    net = EgomotionNet(grid=GRID, width=4, feature_dim=4, radius=(1, 1, 1), hidden=16).eval()
+    for head in net.heads:
+        torch.nn.init.normal_(head[-1].weight, std=0.05)
+    ref_in, query_in = torch.randn(2, 4, 16, 4, 16), torch.randn(2, 4, 16, 4, 16)
+    with torch.no_grad():
+        whole = net(ref_in, query_in)
+        parts = net.align(net.encode(ref_in), net.encode(query_in))
+    assert not torch.allclose(whole["ref0_T_ref1"], torch.eye(4).expand(2, 4, 4), atol=1e-3)
+    torch.testing.assert_close(parts["ref0_T_ref1"], whole["ref0_T_ref1"], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(parts["per_scale"], whole["per_scale"], atol=1e-5, rtol=1e-5)
+    with pytest.raises(Exception, match="query_feat"):
+        net.align(net.encode(ref_in), net.encode(query_in)[:1])

@@ -98,3 +98,31 @@ def test_object_motion_moves_only_the_block_and_its_flow_points_where_it_went():
     torch.testing.assert_close(back.permute(0, 2, 3, 4, 1)[ok], vol0.permute(0, 2, 3, 4, 1)[ok], atol=1e-3, rtol=0)
     # the block's motion turns about its own centre: its mean flow is close to the pure translation
     assert float(flow.abs().max()) < 1.5 / GRID.voxel_size * 1.2 + 1.0
+
+
+def test_kept_encoding_of_the_first_volume_gives_the_same_flow():
+    """Flow3D(f0, f1, encoded0=encode(f0)) — a stream encodes each frame once — equals the plain call."""
+    torch.manual_seed(0)
+    net = Flow3D(in_channels=4, channels=6, levels=2, hidden=8, unit_cost=True, refine=True, soft_argmax=True).eval()
+    with torch.no_grad():
+        for p in net.parameters():
+            if p.dim() > 1 and not p.any():
+                p.normal_(std=0.3)
+        f0, f1 = torch.randn(1, 4, 8, 4, 8), torch.randn(1, 4, 8, 4, 8)
+        plain = net(f0, f1)["flow"]
+        kept = net(f0, f1, encoded0=net.encode(f0))["flow"]
+    assert plain.abs().max() > 0.05
+    torch.testing.assert_close(kept, plain, atol=1e-5, rtol=1e-5)
+
+
+def test_pyramid_levels_are_block_means_of_the_grid():
+    """pool_pyramid against adaptive pooling of the finest level (the reference), for even and odd sizes."""
+    from core.models.flow3d import level_sizes, pool_pyramid
+    g = torch.Generator().manual_seed(1)
+    for size in ((16, 4, 16), (9, 3, 10)):
+        c = torch.randn(2, 3, *size, generator=g)
+        sizes = level_sizes(size, 3)
+        pyramid = pool_pyramid(c, sizes)
+        assert [tuple(p.shape[-3:]) for p in pyramid] == [tuple(s) for s in sizes]
+        for level, s in zip(pyramid, sizes):
+            torch.testing.assert_close(level, torch.nn.functional.adaptive_avg_pool3d(c, s), atol=1e-6, rtol=1e-6)

@@ -178,3 +178,69 @@ def test_refused_and_failed_frames_are_counted_apart(endpoint):
     finally:
         client.close()
         bridge.stop()
+
+
+class AheadProcessor(JsonProcessor):
+    """JsonProcessor with an `encode_ahead` that records which thread ran it and which frame it was handed
+    as the previous one; `process` checks it received the look-ahead made for its own frame."""
+
+    def __init__(self, delay_s: float = 0.0) -> None:
+        super().__init__(delay_s)
+        self.ahead_calls: list[tuple[int, int | None, str]] = []
+        self.used: list[int] = []
+
+    def encode_ahead(self, frame, previous):
+        before = None if previous is None else previous["sequence"]
+        self.ahead_calls.append((frame.sequence, before, threading.current_thread().name))
+        if frame.fail == "ahead-crash":
+            raise RuntimeError("a bug in the look-ahead")
+        return {"sequence": frame.sequence}
+
+    def process(self, camera, state, frame, ahead=None):
+        if ahead is not None:
+            assert ahead["sequence"] == frame.sequence
+            self.used.append(frame.sequence)
+        return super().process(camera, state, frame)
+
+
+def test_look_ahead_runs_beside_the_worker_and_keeps_the_accounting(endpoint):
+    """Frames are encoded ahead on the look-ahead thread, each handed the look-ahead of the frame the worker
+    took last; the worker processes only finished look-aheads; a failing look-ahead costs nothing but the
+    worker redoing the work; drops and the accounting identity are as without look-ahead. With
+    lookahead=False no look-ahead runs."""
+    processor = AheadProcessor(delay_s=0.05)
+    bridge = Bridge(processor=processor, zenoh_options=ZenohOptions(listen=(endpoint,)), bridge_id="t4").start()
+    client = open_session(ZenohOptions(connect=(endpoint,)))
+    try:
+        time.sleep(0.5)
+        pub = client.declare_publisher(keys.rgbd("cam3"), congestion_control=zenoh.CongestionControl.BLOCK)
+        for seq in range(4):
+            pub.put(frame("cam3", seq, **({"fail": "ahead-crash"} if seq == 2 else {})), attachment=b"pub=A")
+            time.sleep(0.15)  # one at a time
+        wait_until(lambda: bridge.status()["cameras"].get("cam3", {}).get("processed") == 4)
+        assert [s for _, s in processor.seen] == [0, 1, 2, 3]
+        assert processor.used == [0, 1, 3]  # frame 2's look-ahead failed: processed without one
+        assert [(s, b) for s, b, _ in processor.ahead_calls] == [(0, None), (1, 0), (2, 1), (3, None)]
+        assert {name for *_, name in processor.ahead_calls} == {"n3dmap-bridge-lookahead"}
+        for seq in range(4, 30):  # faster than the 50 ms processing: the bridge falls behind and drops
+            pub.put(frame("cam3", seq), attachment=b"pub=A")
+        wait_until(lambda: bridge.status()["cameras"]["cam3"]["received"] == 30
+                   and bridge.status()["cameras"]["cam3"]["pending"] == 0)
+        stats = bridge.status()["cameras"]["cam3"]
+        assert balanced(stats) and stats["dropped_behind"] > 0 and processor.seen[-1] == ("cam3", 29)
+        pub.undeclare()
+    finally:
+        client.close()
+        bridge.stop()
+    plain = AheadProcessor()
+    bridge = Bridge(processor=plain, zenoh_options=ZenohOptions(listen=(endpoint,)), bridge_id="t5",
+                    lookahead=False).start()
+    client = open_session(ZenohOptions(connect=(endpoint,)))
+    try:
+        time.sleep(0.5)
+        client.put(keys.rgbd("cam4"), frame("cam4", 0), attachment=b"pub=A")
+        wait_until(lambda: bridge.status()["cameras"].get("cam4", {}).get("processed") == 1)
+        assert plain.ahead_calls == [] and plain.used == [] and plain.seen == [("cam4", 0)]
+    finally:
+        client.close()
+        bridge.stop()

@@ -198,6 +198,44 @@ def test_processor_answers_equal_the_reference(bundle_dir, frames):
     assert stats["idle_map_previous"]["count"] >= 2
 
 
+def test_look_ahead_answers_equal_the_reference(bundle_dir, frames):
+    """The bridge's look-ahead path: each frame's `encode_ahead` (its ego volume and encoding, and the pair's
+    egomotion against the frame before) made before its step, as the look-ahead thread does. Answers equal
+    the reference pair; a look-ahead made against another frame than the step's previous one (here: frame
+    3's against frame 1, while its step pairs it with frame 2) has its egomotion ignored, not used."""
+    runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
+    processor = RuntimeProcessor(runtime, min_score=-1.0)
+    state = CameraState()
+    views = decoded(frames)
+    aheads, boxes_seen = [], 0
+    for t, frame in enumerate(views):
+        previous = aheads[t - 2] if t == 3 else (aheads[t - 1] if t else None)
+        ahead = processor.encode_ahead(frame, previous)
+        aheads.append(ahead)
+        assert ahead.encoding.ego_features is not None and ahead.encoding.evidence is None
+        assert (ahead.ego_estimate is not None) == (t > 0)
+        outputs = processor.process("c", state, frame, ahead)
+        got = types_pb2.Detections.FromString(outputs.moving_objects)
+        if t > 0:
+            pair = pair_of(views[t - 1], frame)
+            slow = reference_moving_objects(runtime.bundle, pair, stabilize="egomotion", dt=STEP_S)
+            sent = inference_pb2.EgomotionResponse.FromString(outputs.egomotion)
+            np.testing.assert_allclose(codecs.tensor_to_numpy(sent.cam0_T_cam1, "cam0_T_cam1"),
+                                       slow["cam0_T_cam1"][0], atol=ATOL)
+            _assert_boxes_equal(got, slow)
+            boxes_seen += len(got.boxes)
+        state.advance(frame)
+        if t % 2 == 1:  # the worker's idle-time preparation completes the look-ahead's encoding
+            processor.prepare("c", state)
+            assert state.extra["encoding"].evidence is not None
+    assert boxes_seen > 0
+    stats = processor.stats()
+    assert stats["warm_up"]["count"] == 1  # the first frame warmed the models up, once
+    # steps with a usable look-ahead skip egomotion: t = 1, 2, 4 (t = 3's was made against frame 1)
+    assert stats["ahead_egomotion"]["count"] == 4 and stats["egomotion"]["count"] == len(frames) - 1
+    assert stats["egomotion"]["p50"] < stats["ahead_egomotion"]["p50"]
+
+
 def _assert_boxes_equal(got: types_pb2.Detections, slow: dict) -> None:
     """The published boxes = the reference's valid rows, best first."""
     keep = slow["valid"][0]
@@ -272,3 +310,19 @@ def test_frame_dt_default_is_the_pipelines():
     from services.cli.argtypes import DEFAULT_FRAME_DT
 
     assert DEFAULT_FRAME_DT == DEFAULT_DT
+
+
+def test_the_map_is_made_only_when_a_step_reads_it(bundle_dir, frames):
+    """Frame 0's mapper map feeds only an occupancy gate or a flow module comparing maps: without an
+    occupancy head, a volume-comparing flow module's step skips the mapper — and still equals the reference."""
+    full = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu")).bundle
+    bundle = Bundle(preset=TINY, modules={k: m for k, m in full.modules.items() if k != "occupancy"})
+    pair = pair_of(*decoded(frames[:2]))
+    timings: dict = {}
+    fast = moving_step(bundle, **pair, dt=STEP_S, timings=timings)
+    reads_map = bundle.modules["flow"].inputs != "volume"
+    assert ("map_previous" in timings) == reads_map
+    assert_same(fast, reference_moving_objects(bundle, pair, stabilize="egomotion", dt=STEP_S))
+    with_occupancy: dict = {}
+    moving_step(full, **pair, dt=STEP_S, timings=with_occupancy)
+    assert "map_previous" in with_occupancy  # the occupancy gate reads the map, whatever the flow compares
