@@ -63,6 +63,10 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser(argv)
     args = parser.parse_args(argv)
+    if args.command != "serve":  # the server's requests of every size would fragment a never-trimmed heap
+        from services.malloc import keep_heap
+
+        keep_heap()  # glibc: large tensors reuse the heap instead of fresh, page-faulted mmaps (services/malloc.py)
     try:
         result = args.func(args)
     except BrokenPipeError:  # `n3dmap ... | head`: the reader left (an OSError, so caught first)

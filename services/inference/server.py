@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ctypes
 import logging
-import os
 import signal
 import socket
 import sys
@@ -26,6 +24,7 @@ from core.errors import BundleError, N3dmapError
 from services.inference.grpc_server import start_grpc_server
 from services.inference.rest import DEFAULT_MAX_BODY, create_app
 from services.inference.runtime import Runtime, RuntimeConfig
+from services.malloc import limit_arenas
 
 log = logging.getLogger("n3dmap.serve")
 
@@ -106,33 +105,13 @@ def _server_class():
     return Server
 
 
-MALLOC_ARENAS = 2
-_M_ARENA_MAX = -8  # glibc's mallopt parameter number
-
-
-def limit_malloc_arenas(n: int = MALLOC_ARENAS) -> bool:
-    """Cap glibc's malloc arenas at `n` (as MALLOC_ARENA_MAX=n would), unless MALLOC_ARENA_MAX is set.
-
-    glibc gives threads that allocate their own arenas (up to 8 per core); request arrays decoded on the
-    event loop and freed after the model thread used them, and the model's own buffers, fragment those
-    arenas, so the server's RSS crept up under load: +6–7 % in 1–3 min at 64 concurrent clients
-    (tests/benchmarks/bench_soak.py, 2 CPUs), flat (+1 %) with 2 arenas at the same throughput. Must run
-    before the server's threads first allocate (glibc fixes the limit when a thread first needs a new
-    arena). True if the cap was set; False elsewhere (not glibc, or the environment decides)."""
-    if os.environ.get("MALLOC_ARENA_MAX") or not sys.platform.startswith("linux"):
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        return bool(libc.mallopt(_M_ARENA_MAX, n))
-    except (OSError, AttributeError):  # not glibc (e.g. musl has no libc.so.6 / mallopt)
-        return False
-
-
 def run(settings: ServeSettings) -> int:
     """Serve until SIGTERM/SIGINT. Errors in the bundle or ports end the process with a message."""
     import uvicorn
 
-    limit_malloc_arenas()
+    limit_arenas()  # services.malloc: RSS stayed flat under the soak's 64 clients
+    # keep_heap() is not for the server: requests of every size fragment a heap that is never trimmed
+    # (bench_soak.py: RSS +9.8 % in 60 s with it, the limit is 5 %)
 
     if bool(settings.tls_cert) != bool(settings.tls_key):
         raise BundleError("--tls-cert and --tls-key go together")

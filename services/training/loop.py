@@ -25,6 +25,7 @@ from typing import Callable, Protocol
 import torch
 
 from core.errors import DataError, N3dmapError
+from services.malloc import keep_heap
 from services.training.checkpoints import (
     check_same_run, load_checkpoint, read_checkpoint_state, save_checkpoint,
 )
@@ -170,6 +171,7 @@ def _format_bad(values: dict[str, float]) -> str:
 
 def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = CORE_TASKS) -> LoopOutcome:
     """Run (or resume) the training of `config` on this worker; see the module docstring."""
+    keep_heap()  # services.malloc: each step's large tensors reuse the heap instead of fresh mmaps (Ray workers too)
     torch.manual_seed(config.seed)  # identical initial weights on every rank (DDP also broadcasts)
     device = session.device
     task = spec.build(config, device)
