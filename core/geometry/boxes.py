@@ -20,6 +20,7 @@ import torch
 
 from core.errors import N3dmapError, ShapeError
 from core.geometry import se3
+from core.precision import full_precision
 
 # Corner sign pattern, (x, y, z) in units of half-lengths. Corners 0-3 go round the top face (y = −ly/2,
 # up, since Y points down), corners 4-7 round the bottom face; corner i + 4 lies below corner i.
@@ -44,6 +45,7 @@ def box_T_obj(boxes: torch.Tensor) -> torch.Tensor:
     return se3.from_rt(se3.yaw_to_matrix(boxes[..., 6]), boxes[..., :3])
 
 
+@full_precision
 def box_corners(boxes: torch.Tensor) -> torch.Tensor:
     """The 8 corners of each box in the boxes' frame. boxes: B×K×7 -> B×K×8×3 (order: see _CORNER_SIGNS)."""
     _check_boxes("boxes", boxes)
@@ -70,6 +72,7 @@ def transform_boxes(a_T_b: torch.Tensor, boxes_b: torch.Tensor, *, tol: float = 
     return torch.cat([centre, boxes_b[..., 3:6], yaw.unsqueeze(-1)], dim=-1)
 
 
+@full_precision
 def points_in_boxes(xyz: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
     """Which points lie inside (or on the surface of) which box; points and boxes in the same frame.
 

@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from core.errors import ShapeError, check_shape
 from core.geometry import se3
 from core.geometry.grid import GridConfig, mem_T_ref, ref_T_mem, voxel_centers_mem
+from core.precision import full_precision
 
 
 def _check_volume(name: str, vol: torch.Tensor) -> None:
@@ -40,6 +41,7 @@ def check_volume_matches_grid(name: str, vol: torch.Tensor, grid: GridConfig) ->
                          f"Z×Y×X = {'×'.join(map(str, grid.shape_zyx))} (for a coarser volume pass grid.scaled(...))")
 
 
+@full_precision  # under autocast: float32 volume and coordinates, not the bf16 volume's dtype
 def sample_volume_at(vol: torch.Tensor, xyz_mem: torch.Tensor) -> torch.Tensor:
     """Trilinear samples of `vol` at mem coordinates arranged in any B×…×3 layout.
 

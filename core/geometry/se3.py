@@ -13,6 +13,8 @@ Conventions (docs/conventions.md#poses):
 
 Every function accepts any number of leading batch dimensions (written `...` below; usually `B`);
 device and dtype follow the inputs. All functions are differentiable (autograd) except `is_rigid`.
+The ones that multiply matrices run in float32 under torch.autocast (core.precision.full_precision):
+autocast would otherwise compute poses and points in bf16.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import numpy as np
 import torch
 
 from core.errors import ShapeError
+from core.precision import full_precision
 
 
 def _check_last(name: str, t: torch.Tensor, trailing: tuple[int, ...]) -> None:
@@ -35,6 +38,7 @@ def _check_last(name: str, t: torch.Tensor, trailing: tuple[int, ...]) -> None:
 
 # ----------------------------------------------------------------------------- 4×4 transforms
 
+@full_precision
 def compose(a_T_b: torch.Tensor, b_T_c: torch.Tensor) -> torch.Tensor:
     """a_T_c = a_T_b @ b_T_c. Shapes ...×4×4 (leading dims broadcast)."""
     _check_last("a_T_b", a_T_b, (4, 4))
@@ -61,6 +65,7 @@ def from_rt(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return torch.cat([top, bottom], dim=-2)  # ...×4×4
 
 
+@full_precision
 def invert(a_T_b: torch.Tensor) -> torch.Tensor:
     """b_T_a for a rigid a_T_b (uses R^T, not a general inverse). ...×4×4 -> ...×4×4."""
     R, t = split_rt(a_T_b)
@@ -68,6 +73,7 @@ def invert(a_T_b: torch.Tensor) -> torch.Tensor:
     return from_rt(Rt, -(Rt @ t.unsqueeze(-1)).squeeze(-1))
 
 
+@full_precision
 def apply(a_T_b: torch.Tensor, xyz_b: torch.Tensor) -> torch.Tensor:
     """Transform points: xyz_a = a_T_b · xyz_b. a_T_b: B×4×4 (or ...×4×4), xyz_b: B×N×3 -> B×N×3.
 
@@ -80,6 +86,7 @@ def apply(a_T_b: torch.Tensor, xyz_b: torch.Tensor) -> torch.Tensor:
     return xyz_b @ R.transpose(-1, -2) + t.unsqueeze(-2)  # B×N×3
 
 
+@full_precision
 def is_rigid(a_T_b: torch.Tensor, tol: float = 1e-4) -> torch.Tensor:
     """...×4×4 -> ... bool: finite, bottom row (0,0,0,1), R^T R = I and det R = +1 within `tol`."""
     _check_last("a_T_b", a_T_b, (4, 4))
@@ -122,6 +129,7 @@ def _skew(v: torch.Tensor) -> torch.Tensor:
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).unflatten(-1, (3, 3))  # ...×3×3
 
 
+@full_precision
 def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
     """Rodrigues: ...×3 (axis × angle, radians) -> ...×3×3. Stable and differentiable at angle 0."""
     _check_last("axis_angle", axis_angle, (3,))

@@ -19,8 +19,10 @@ import torch.nn.functional as F
 from core.errors import ShapeError, check_shape
 from core.geometry import camera, se3
 from core.geometry.grid import GridConfig, voxel_centers_ref
+from core.precision import full_precision
 
 
+@full_precision  # under autocast: float32 image and pixel coordinates
 def sample_image(image: torch.Tensor, uv: torch.Tensor) -> torch.Tensor:
     """Bilinear samples of an image at pixel coordinates, edge-clamped.
 

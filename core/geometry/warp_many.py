@@ -30,8 +30,10 @@ from core.errors import ShapeError, check_shape
 from core.geometry import se3
 from core.geometry.grid import GridConfig, mem_T_ref, ref_T_mem, voxel_centers_mem
 from core.geometry.resample import check_volume_matches_grid
+from core.precision import full_precision
 
 
+@full_precision  # coordinates and volume in float32 under autocast (core.precision)
 def sample_via_slices(vol: torch.Tensor, xyz_mem: torch.Tensor) -> torch.Tensor:
     """Trilinear samples (zeros outside) of one volume at R point sets.
 
@@ -64,6 +66,7 @@ def sample_via_slices(vol: torch.Tensor, xyz_mem: torch.Tensor) -> torch.Tensor:
     return torch.lerp(both[:, :, 0], both[:, :, 1], wz)  # R×C×P
 
 
+@full_precision
 def warp_rigid_many(vol_b: torch.Tensor, b_T_a: torch.Tensor, grid: GridConfig) -> torch.Tensor:
     """One volume in frame b resampled into R frames a_r: vol_b 1×C×Z×Y×X, b_T_a R×4×4 -> R×C×Z×Y×X with
     out[r](p) = vol_b(mem(b_T_a[r] · ref(p))) for each voxel centre p (see `warp_rigid`)."""

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import torch
 
 from core.errors import ShapeError
+from core.precision import full_precision
 
 
 @dataclass(frozen=True)
@@ -31,6 +32,7 @@ class ContrastiveConfig:
     nonzero_loss_cutoff: float = 1.4
 
 
+@full_precision  # |a|² + |b|² − 2a·b cancels: float32 under autocast
 def pairwise_distances(emb: torch.Tensor) -> torch.Tensor:
     """emb: N×C -> N×N Euclidean distances (sqrt with a small floor so gradients stay finite)."""
     sq = (emb * emb).sum(dim=1)

@@ -16,6 +16,7 @@ import torch
 import torch.nn.functional as F
 
 from core.errors import ShapeError, check_shape
+from core.precision import full_precision
 
 
 def displacements(radius: tuple[int, int, int], *, device=None, dtype=torch.float32) -> torch.Tensor:
@@ -75,6 +76,7 @@ def mean_correlation_3d(reference: torch.Tensor, queries: torch.Tensor, radius: 
     return out.flip(-3, -2, -1).reshape(B, R, -1) / (Z * Y * X)  # B×R×D
 
 
+@full_precision  # displacements in voxels: float32 under autocast
 def soft_argmax_displacement(cost: torch.Tensor, radius: tuple[int, int, int], beta: torch.Tensor | float) -> torch.Tensor:
     """cost B×D×Z×Y×X (from `cross_correlation_3d` with the same radius) -> expected displacement B×3×Z×Y×X.
 

@@ -46,6 +46,7 @@ from core.geometry.warp_many import warp_rigid_many
 from core.models.cost_volume import displacements, mean_correlation_3d
 from core.models.egomotion_rotations import candidate_angles, candidate_rotations
 from core.models.encoder3d import Encoder3D
+from core.precision import full_precision, geometry_dtype
 
 
 def default_scales(grid: GridConfig) -> tuple[float, ...]:
@@ -61,6 +62,7 @@ def pool_to(vol: torch.Tensor, grid: GridConfig) -> torch.Tensor:
     return F.adaptive_avg_pool3d(vol, grid.shape_zyx)  # B×C×Zs×Ys×Xs
 
 
+@full_precision
 def se3_exp_update(delta: torch.Tensor) -> torch.Tensor:
     """δ: B×6 (axis-angle radians, translation metres) -> B×4×4 [exp(ω) | t]."""
     return se3.from_rt(se3.axis_angle_to_matrix(delta[:, :3]), delta[:, 3:])
@@ -137,7 +139,7 @@ class EgomotionNet(nn.Module):
         """
         B, C = reference.shape[:2]
         R = candidates.shape[0]
-        composed = candidates.unsqueeze(0) @ estimate.unsqueeze(1)  # B×R×4×4: R_i · E
+        composed = se3.compose(candidates.unsqueeze(0), estimate.unsqueeze(1))  # B×R×4×4: R_i · E
         # Each example's ONE query under its R candidates (no R copies of it).
         warped = torch.stack([self.warp_query(query[b:b + 1], composed[b], grid) for b in range(B)])  # B×R×C×Zs×Ys×Xs
         # = cross_correlation_3d(reference, warped_r).mean over space, for every r, as one convolution
@@ -150,6 +152,7 @@ class EgomotionNet(nn.Module):
         steps = torch.tensor([math.radians(v) for v in self.rotation_steps_deg[index]])
         return torch.cat([steps, torch.full((3,), grid.voxel_size)]).to(self.log_beta.device)
 
+    @full_precision  # soft-argmax over rotation angles and voxel displacements: float32 under autocast
     def prior_update(self, scores: torch.Tensor, index: int, grid: GridConfig) -> torch.Tensor:
         """Soft-argmax of one scale's scores B×(R·D) -> δ B×6 (ω rad, t metres in ref0); see module doc."""
         B = scores.shape[0]
@@ -173,17 +176,19 @@ class EgomotionNet(nn.Module):
         check_shape("ref_feat", ref_feat, (None, self.feature_dim, *self.grid.shape_zyx))
         check_shape("query_feat", query_feat, tuple(ref_feat.shape))
         B = ref_feat.shape[0]
-        estimate = torch.eye(4, dtype=ref_feat.dtype, device=ref_feat.device).expand(B, 4, 4)
+        # Poses stay float32 when the features are bf16 (autocast): core.precision.
+        pose_dtype = geometry_dtype(ref_feat.dtype)
+        estimate = torch.eye(4, dtype=pose_dtype, device=ref_feat.device).expand(B, 4, 4)
         per_scale = []
         for i, (scale, head) in enumerate(zip(self.scales, self.heads)):
             grid_s = self.scale_grid(scale)
             ref_s, query_s = pool_to(ref_feat, grid_s), pool_to(query_feat, grid_s)
-            candidates = getattr(self, f"candidates_{i}").to(ref_feat.dtype)
+            candidates = getattr(self, f"candidates_{i}").to(pose_dtype)
             scores = self.scores(ref_s, query_s, estimate.detach(), candidates, grid_s)
             delta = head(scores) * self.update_units(i, grid_s).to(scores.dtype)  # B×6
             if self.soft_argmax:
                 delta = delta + self.prior_update(scores, i, grid_s)
-            estimate = se3_exp_update(delta) @ estimate.detach()  # B×4×4
+            estimate = se3.compose(se3_exp_update(delta), estimate.detach())  # B×4×4
             per_scale.append(estimate)
         return {"ref0_T_ref1": estimate, "per_scale": torch.stack(per_scale, dim=0)}
 

@@ -33,7 +33,7 @@ from torch import nn
 
 from core.errors import check_shape
 from core.models.normalize import l2_normalize_channels
-from core.models.conv3d import Conv3d
+from core.models.conv3d import Conv3d, ConvTranspose3d
 
 
 def _conv_block(conv: nn.Module, channels: int) -> nn.Sequential:
@@ -57,8 +57,8 @@ class Encoder3D(nn.Module):
         self.down1 = _conv_block(Conv3d(in_channels, C, 4, stride=2, padding=1), C)
         self.down2 = _conv_block(Conv3d(C, 2 * C, 4, stride=2, padding=1), 2 * C)
         self.down3 = _conv_block(Conv3d(2 * C, 4 * C, 4, stride=2, padding=1), 4 * C)
-        self.up1 = _conv_block(nn.ConvTranspose3d(4 * C, 2 * C, 4, stride=2, padding=1), 2 * C)
-        self.up2 = _conv_block(nn.ConvTranspose3d(4 * C, C, 4, stride=2, padding=1), C)
+        self.up1 = _conv_block(ConvTranspose3d(4 * C, 2 * C, 4, stride=2, padding=1), 2 * C)
+        self.up2 = _conv_block(ConvTranspose3d(4 * C, C, 4, stride=2, padding=1), C)
         self.out = Conv3d(2 * C, out_channels, 1)
 
     def config(self) -> dict:

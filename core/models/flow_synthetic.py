@@ -43,7 +43,8 @@ def rigid_flow(motion: torch.Tensor, grid: GridConfig) -> torch.Tensor:
     """motion B×4×4 (ref, applied to the scene) -> flow B×3×Z×Y×X in voxels of `grid`."""
     B = motion.shape[0]
     dtype, device = motion.dtype, motion.device
-    memM = mem_T_ref(grid, dtype=dtype, device=device) @ motion @ ref_T_mem(grid, dtype=dtype, device=device)  # B×4×4
+    memM = se3.compose(se3.compose(mem_T_ref(grid, dtype=dtype, device=device), motion),
+                       ref_T_mem(grid, dtype=dtype, device=device))  # B×4×4
     p = voxel_centers_mem(grid, dtype=dtype, device=device).expand(B, -1, 3)  # B×ZYX×3
     moved = se3.apply(memM, p)  # B×ZYX×3
     flow = (moved - p).reshape(B, grid.Z, grid.Y, grid.X, 3)  # B×Z×Y×X×3

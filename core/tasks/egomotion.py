@@ -97,8 +97,8 @@ class EgomotionTask(nn.Module):
             P = random_perturbation(B, max_deg=self.cfg.augment_deg, max_m=self.cfg.augment_m,
                                     generator=self._generator, dtype=target.dtype, device=target.device,
                                     mixture=self.cfg.augment_mixture)
-            cam1 = cam1 @ P[:, None]  # B×V×4×4: cam_T_ref1' = cam_T_ref1 · ref1_T_ref1'
-            target = target @ P
+            cam1 = se3.compose(cam1, P[:, None])  # B×V×4×4: cam_T_ref1' = cam_T_ref1 · ref1_T_ref1'
+            target = se3.compose(target, P)
         with torch.no_grad():
             vol0 = fused_input_volume(rgb[:, t0], depth[:, t0], pix, cam0, self.cfg.grid)  # B×4×Z×Y×X
             vol1 = fused_input_volume(rgb[:, t1], depth[:, t1], pix, cam1, self.cfg.grid)

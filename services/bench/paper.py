@@ -67,7 +67,8 @@ def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds:
     stages = StageRunner(out / "work", log)
     _check_same_plan(out / "work" / "plan.json", config)
     device = resolve_device(config.device)
-    log(f"[bench] paper benchmark, preset {config.preset}, seeds {list(config.seeds)}, device {device}, "
+    log(f"[bench] paper benchmark, preset {config.preset}, seeds {list(config.seeds)}, device {device}"
+        f"{', bf16 training' if config.precision == 'bf16' else ''}, "
         f"{'quick profile' if config.quick else 'full profile'} -> {out}")
 
     sequential = _thread_plan(1, threads)
@@ -174,6 +175,7 @@ def _check_same_plan(path: Path, config: BenchConfig) -> None:
                                "no stopping rules); use a new --out")
     if path.exists():
         earlier = {k: v for k, v in json.loads(path.read_text()).items() if k not in ("seeds", "workers", "device")}
+        earlier.setdefault("precision", "fp32")  # plans written before the option trained in fp32
         if earlier != current:
             changed = sorted(k for k in set(earlier) | set(current) if earlier.get(k) != current.get(k))
             raise BenchConfigError(f"{path.parent.parent} holds a benchmark with another plan "

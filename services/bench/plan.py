@@ -78,6 +78,7 @@ class BenchConfig:
     batch_size: int | None = None              # records per step (None: the preset's default)
     workers: int = 0                           # 0: train in this process; N: Ray Train with N workers
     device: str = "auto"                       # auto | cpu | cuda
+    precision: str = "fp32"                    # every training stage's --precision (fp32 | bf16)
     retrieval_per_example: int = 10            # patch pairs per (record, target view): the paper's 10
     retrieval_cube: int = 3                    # side of the 3D feature cubes (2D patches: the eval kind's 5)
     moving_iou: float = 0.5                    # the paper's PR curves use 3D IoU 0.5
@@ -106,6 +107,8 @@ class BenchConfig:
                                        f"and mode one of {MODES}")
         if self.workers < 0:
             raise BenchConfigError(f"workers must be >= 0, got {self.workers}")
+        if self.precision not in ("fp32", "bf16"):
+            raise BenchConfigError(f"precision must be fp32 or bf16, got {self.precision!r}")
         if self.retrieval_per_example < 1 or self.retrieval_cube < 1 or self.retrieval_cube % 2 == 0:
             raise BenchConfigError("retrieval needs >= 1 pair per example and an odd cube size")
 

@@ -31,6 +31,7 @@ def train_stage(config: BenchConfig, *, task: str, data_dir: Path, run_dir: Path
         return TrainJobConfig(
             task=task, data_dir=str(data_dir), run_dir=str(run_dir), preset=config.preset,
             task_options=dict(task_options or {}), workers=config.workers, device=config.device,
+            precision=config.precision,
             steps=steps, batch_size=batch_size or config.batch_size, checkpoint_every=every,
             log_every=max(1, min(every, steps) // 2), max_failures=0 if config.workers == 0 else 1,
             seed=seed, init_bundle=str(init_bundle) if init_bundle else None, freeze=freeze,

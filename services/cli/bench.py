@@ -61,6 +61,8 @@ def register(subparsers) -> None:
     p.add_argument("--workers", type=int, default=0,
                    help="0 (default): train in this process; N: Ray Train with N workers per stage")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+                   help="every training stage's `n3dmap train --precision` (default fp32; see its help)")
     p.add_argument("--threads", type=_positive_int, default=None,
                    help="torch threads per process instead of the plan's share of the CPUs (may oversubscribe)")
     p.set_defaults(func=run)
@@ -74,7 +76,7 @@ def config_from_args(args: argparse.Namespace):
         "label_budgets": tuple(args.label_budgets) if args.label_budgets else None,
         "batch_size": args.batch_size}.items() if v is not None}
     config = plan_for(args.preset, seeds=tuple(range(args.seeds)), quick=args.quick, data_seed=args.data_seed,
-                      workers=args.workers, device=args.device, **overrides)
+                      workers=args.workers, device=args.device, precision=args.precision, **overrides)
     steps = {s: getattr(args, f"{s}_steps") for s in ("pretrain", "detector", "flow", "egomotion")}
     steps = {k: v for k, v in steps.items() if v is not None}
     return with_steps(config, **steps) if steps else config

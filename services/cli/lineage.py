@@ -20,8 +20,8 @@ from pathlib import Path
 
 # Keys run_provenance writes besides the task's own options.
 RUN_KEYS = frozenset({"task", "data_manifest", "data_seed", "data_split", "steps", "workers",
-                      "batch_size_per_worker", "lr", "seed", "init_bundle", "frozen", "git_commit",
-                      "run_dir", "run_id", "parents"})
+                      "batch_size_per_worker", "lr", "seed", "precision", "init_bundle", "frozen",
+                      "git_commit", "run_dir", "run_id", "parents"})
 GIT_CHARS = 10
 
 
@@ -41,12 +41,15 @@ def task_label(prov: dict) -> str:
 
 
 def run_details(prov: dict, path: str | None = None) -> str:
-    """Steps, seed and frozen modules | data | run dir (or bundle path) | git commit, where recorded."""
+    """Steps, seed, precision (unless fp32) and frozen modules | data | run dir (or bundle path) | git
+    commit, where recorded."""
     training = []
     if prov.get("steps") is not None:
         training.append(f"{prov['steps']} steps")
     if prov.get("seed") is not None:
         training.append(f"seed {prov['seed']}")
+    if prov.get("precision") not in (None, "fp32"):
+        training.append(str(prov["precision"]))
     if prov.get("frozen"):
         training.append("frozen " + ", ".join(map(str, prov["frozen"])))
     parts = [", ".join(training)] if training else []

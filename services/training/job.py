@@ -272,6 +272,7 @@ def run_provenance(config: TrainJobConfig, *, manifest: dict, steps: int, parent
         "batch_size_per_worker": config.batch_size,
         "lr": config.lr,
         "seed": config.seed,
+        "precision": config.precision,
         "init_bundle": config.init_bundle,
         "frozen": list(config.freeze),
         "git_commit": git_commit(),

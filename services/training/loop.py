@@ -215,7 +215,10 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
             batches_this_epoch += 1
             _set_train_mode(task, exported, config.freeze)
             batch = spec.to_batch(records, device)
-            out = model(batch)
+            # bf16: autocast (CPU or CUDA, from the device) covers the forward and the task's loss; the
+            # backward follows the forward's dtypes, and the optimizer updates the float32 weights.
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=config.precision == "bf16"):
+                out = model(batch)
             metrics = _scalar_metrics(out)
             if names is None:
                 names = sorted(metrics)

@@ -3,11 +3,11 @@
 Pretraining mode (the default, no --tasks):
 CPU: full step (forward + backward + Adam) for `tiny` and `small`; for `paper` only the 3D encoder
 forward+backward at 128×32×128 × 4 channels, batch 1 (a full paper step is GPU work).
-CUDA: the full step at each preset (paper at batch 4) with optional bf16 autocast (--amp), then the
-largest grid (paper grid scaled up in steps) whose full step fits in memory.
+CUDA: the full step at each preset (paper at batch 4) with optional bf16 autocast (--precision bf16,
+alias --amp), then the largest grid (paper grid scaled up in steps) whose full step fits in memory.
 
     python tests/benchmarks/bench_train_step.py --device cpu --preset tiny --steps 5
-    python tests/benchmarks/bench_train_step.py --device cuda --preset paper --amp --steps 20
+    python tests/benchmarks/bench_train_step.py --device cuda --preset paper --precision bf16 --steps 20
 
 Per-task mode (--tasks, CPU only, presets tiny and small; --preset all = both): for each (task,
 preset) row, every task of core.tasks.build_task (pretrain = contrastive, pretrain_regression =
@@ -17,14 +17,16 @@ of the preset's batch size of synthetic records (generate_record, moving_ego=Tru
 untimed steps, then --steps timed steps of forward + backward + Adam (over the parameters that
 require grad, as services/training/loop.py does), each timed alone (median and mean), then
 --profile-steps more steps under torch.profiler (CPU activity). --threads defaults to 1 here (and
-sets OMP_NUM_THREADS/MKL_NUM_THREADS of the row subprocesses).
+sets OMP_NUM_THREADS/MKL_NUM_THREADS of the row subprocesses). --precision bf16 runs each forward (the
+task's loss included) under CPU bf16 autocast, as `n3dmap train --precision bf16` does.
 
     python tests/benchmarks/bench_train_step.py --tasks --preset tiny --threads 1 --steps 3
     python tests/benchmarks/bench_train_step.py --tasks flow,detector --preset small --threads 1
+    python tests/benchmarks/bench_train_step.py --tasks all --preset small --threads 1 --precision bf16
 
 Every row runs in a fresh subprocess (this file with --row), so one row's memory, allocator caches
 and thread pools do not leak into the next. Each row prints one JSON line:
-  {"task", "preset", "threads", "steps", "step_s_median", "step_s_mean", "conv_share", "peak_rss_mb",
+  {"task", "preset", "precision", "threads", "steps", "step_s_median", "step_s_mean", "conv_share", "peak_rss_mb",
    "top_non_conv": [[op, share], ...], "load_avg", "rss_before_task_mb", "conv_ops"}
 and a table follows the last row.
 - conv_share: convolution ops' share of the self CPU time of the profiled steps (the sum of every
@@ -167,7 +169,7 @@ def _rss_mb() -> float:
 
 
 def profile_task_step(task_name: str, preset_name: str, *, steps: int, warmup: int = 2,
-                      profile_steps: int = 2, threads: int = 1) -> dict:
+                      profile_steps: int = 2, threads: int = 1, precision: str = "fp32") -> dict:
     """One per-task row, in this process (see the module docstring); returns the row's dict."""
     torch.set_num_threads(threads)
     torch.manual_seed(0)
@@ -182,7 +184,8 @@ def profile_task_step(task_name: str, preset_name: str, *, steps: int, warmup: i
     opt = torch.optim.Adam([p for p in task.parameters() if p.requires_grad], lr=1e-3)
 
     def step():
-        out = task(batch)
+        with _autocast("cpu", precision == "bf16"):
+            out = task(batch)
         opt.zero_grad(set_to_none=True)
         out["loss"].backward()
         opt.step()
@@ -200,7 +203,8 @@ def profile_task_step(task_name: str, preset_name: str, *, steps: int, warmup: i
             step()
     events = list(prof.events())
     return {
-        "task": task_name, "preset": preset_name, "threads": torch.get_num_threads(), "steps": steps,
+        "task": task_name, "preset": preset_name, "precision": precision, "threads": torch.get_num_threads(),
+        "steps": steps,
         "step_s_median": statistics.median(times), "step_s_mean": statistics.fmean(times),
         "conv_share": conv_share(events, is_conv_op), "peak_rss_mb": peak,
         "top_non_conv": [[name, share] for name, share in top_ops(events, 5, exclude=is_conv_op)],
@@ -210,10 +214,11 @@ def profile_task_step(task_name: str, preset_name: str, *, steps: int, warmup: i
 
 
 def run_row_subprocess(task_name: str, preset_name: str, *, steps: int, warmup: int, profile_steps: int,
-                       threads: int) -> dict:
+                       threads: int, precision: str = "fp32") -> dict:
     """profile_task_step in a fresh `python this_file --row TASK PRESET` process; returns its row."""
     cmd = [sys.executable, os.path.abspath(__file__), "--row", task_name, preset_name, "--steps", str(steps),
-           "--warmup", str(warmup), "--profile-steps", str(profile_steps), "--threads", str(threads)]
+           "--warmup", str(warmup), "--profile-steps", str(profile_steps), "--threads", str(threads),
+           "--precision", precision]
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if proc.returncode != 0:
@@ -225,13 +230,14 @@ def run_row_subprocess(task_name: str, preset_name: str, *, steps: int, warmup: 
 
 def format_table(rows: list[dict]) -> str:
     """The rows as a fixed-width table (one line per row, plus a header)."""
-    head = f"{'task':<20} {'preset':<6} {'thr':>3} {'median s':>9} {'mean s':>9} {'conv %':>7} " \
+    head = f"{'task':<20} {'preset':<6} {'prec':<4} {'thr':>3} {'median s':>9} {'mean s':>9} {'conv %':>7} " \
            f"{'peak RSS MiB':>12}  {'load 1m':>7}  top non-conv op (share)"
     lines = [head, "-" * len(head)]
     for r in rows:
         top = r["top_non_conv"][0] if r["top_non_conv"] else ["-", 0.0]
-        lines.append(f"{r['task']:<20} {r['preset']:<6} {r['threads']:>3} {r['step_s_median']:>9.3f} "
-                     f"{r['step_s_mean']:>9.3f} {100 * r['conv_share']:>6.1f}% {r['peak_rss_mb']:>12.0f}  "
+        lines.append(f"{r['task']:<20} {r['preset']:<6} {r.get('precision', 'fp32'):<4} {r['threads']:>3} "
+                     f"{r['step_s_median']:>9.3f} {r['step_s_mean']:>9.3f} {100 * r['conv_share']:>6.1f}% "
+                     f"{r['peak_rss_mb']:>12.0f}  "
                      f"{r['load_avg'][0]:>7.2f}  {top[0]} ({100 * top[1]:.1f}%)")
     return "\n".join(lines)
 
@@ -247,13 +253,14 @@ def task_mode(args) -> None:
     if any(p not in CPU_PRESETS for p in presets):
         raise SystemExit(f"--tasks runs the CPU presets {CPU_PRESETS} (or 'all'), got {args.preset!r}")
     threads = args.threads or 1
-    print(f"per-task train step: cpu ({threads} threads), torch {torch.__version__}, warmup {args.warmup}, "
-          f"steps {args.steps}, profiled steps {args.profile_steps}, one subprocess per row", flush=True)
+    print(f"per-task train step: cpu ({threads} threads), {args.precision}, torch {torch.__version__}, "
+          f"warmup {args.warmup}, steps {args.steps}, profiled steps {args.profile_steps}, one subprocess per row",
+          flush=True)
     rows, t0 = [], time.perf_counter()
     for preset_name in presets:
         for task_name in names:
             row = run_row_subprocess(task_name, preset_name, steps=args.steps, warmup=args.warmup,
-                                     profile_steps=args.profile_steps, threads=threads)
+                                     profile_steps=args.profile_steps, threads=threads, precision=args.precision)
             rows.append(row)
             print(json.dumps(row), flush=True)
     print(format_table(rows))
@@ -265,7 +272,9 @@ def main(argv=None) -> None:
     ap.add_argument("--preset", default="all", help="tiny | small | paper | all")
     ap.add_argument("--device", default=None, help="default: cuda if available, else cpu (per-task mode: cpu)")
     ap.add_argument("--steps", type=int, default=5)
-    ap.add_argument("--amp", action="store_true", help="torch.autocast bf16")
+    ap.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+                    help="bf16: the forward under torch.autocast bfloat16 (both modes)")
+    ap.add_argument("--amp", action="store_true", help="alias of --precision bf16")
     ap.add_argument("--objective", default="contrastive", choices=("contrastive", "regression"))
     ap.add_argument("--batch-size", type=int, default=None, help="default: the preset's")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's; per-task mode: 1)")
@@ -277,9 +286,13 @@ def main(argv=None) -> None:
     ap.add_argument("--profile-steps", type=int, default=2, help="per-task mode: steps under torch.profiler")
     ap.add_argument("--row", nargs=2, metavar=("TASK", "PRESET"), help=argparse.SUPPRESS)  # one row, in-process
     args = ap.parse_args(argv)
+    if args.amp:
+        args.precision = "bf16"
+    args.amp = args.precision == "bf16"
     if args.row:
         row = profile_task_step(args.row[0], args.row[1], steps=args.steps, warmup=args.warmup,
-                                profile_steps=args.profile_steps, threads=args.threads or 1)
+                                profile_steps=args.profile_steps, threads=args.threads or 1,
+                                precision=args.precision)
         print(json.dumps(row), flush=True)
         return
     if args.tasks is not None:
@@ -291,7 +304,7 @@ def main(argv=None) -> None:
         torch.set_num_threads(args.threads)
     names = ["tiny", "small", "paper"] if args.preset == "all" else [args.preset]
     dev_name = torch.cuda.get_device_name() if args.device.startswith("cuda") else f"cpu ({torch.get_num_threads()} threads)"
-    print(f"device {dev_name}, torch {torch.__version__}, amp={args.amp}, objective={args.objective}")
+    print(f"device {dev_name}, torch {torch.__version__}, precision {args.precision}, objective={args.objective}")
     for name in names:
         preset = get_preset(name)
         bs = args.batch_size or preset.train.batch_size

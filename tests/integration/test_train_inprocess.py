@@ -89,3 +89,32 @@ def test_contrastive_trains_then_warm_starts_a_frozen_run(tiny_train_data, tmp_p
     assert lines[at + 1].startswith("    pretrain(objective=contrastive)  2 steps, seed 0, frozen mapper | data ")
     assert lines[at + 2].startswith("    <- pretrain(objective=contrastive)  2 steps, seed 0 | data ")
     assert f"| run {first} | git " in lines[at + 2] and not lines[at + 3].startswith("    ")
+
+
+def test_bf16_training_tracks_the_fp32_loss_curve(tiny_train_data, tmp_path, capsys):
+    """--precision bf16 (the forward under bfloat16 autocast) follows the float32 run's loss curve: the
+    same seed draws the same batches and views, so the curves differ only by bf16 rounding.
+
+    Stated tolerances, relative to the fp32 loss: step 1 (same weights, same batch: the bf16 forward
+    alone) within 0.5 %, every step within 4 %. Measured (regression, tiny, 8 steps, batch 2, lr 3e-3,
+    1 thread, AVX512-bf16 CPU): step 1 0.02 %, max 2.3 % (step 5). The test can fail: with the geometry
+    under autocast too (core.precision's float32 geometry removed) step 1 was off by 1.3 % and step 2
+    by 8.5 %; an fp32 run at 1.5× the lr is off by up to 5.3 %, another seed by 17 %. The contrastive
+    objective is not used here: its negatives are drawn from distance-weighted probabilities, so bf16
+    rounding changes the draws and its curve wanders as far as another lr's (2.8 % vs 3.0 %)."""
+    torch.set_num_threads(1)
+    curves = {}
+    for precision in ("fp32", "bf16"):
+        run = tmp_path / precision
+        assert _train(tiny_train_data, run, "--objective", "regression", "--steps", "8", "--batch-size", "2",
+                      "--lr", "3e-3", "--precision", precision) == 0
+        curves[precision] = [r["loss"] for r in read_metrics(run / "metrics.jsonl")]
+    fp32, bf16 = curves["fp32"], curves["bf16"]
+    assert len(fp32) == len(bf16) == 8
+    deviation = [abs(b - f) / f for f, b in zip(fp32, bf16)]
+    assert deviation[0] <= 0.005, (fp32, bf16)
+    assert max(deviation) <= 0.04, (deviation, fp32, bf16)
+    assert bf16 != fp32                                    # bf16 really ran (rounding shows in the losses)
+    assert sum(bf16[-3:]) < sum(bf16[:3])                  # and it trains
+    config = json.loads((tmp_path / "bf16" / "bundle" / "bundle.json").read_text())
+    assert config["provenance"]["steps"] == 8 and config["provenance"]["precision"] == "bf16"

@@ -50,3 +50,25 @@ def test_plan_rejects_bad_options():
         with_steps(plan_for("tiny"), detector=0)
     with pytest.raises(BenchConfigError):
         plan_for("huge")
+    with pytest.raises(BenchConfigError, match="precision"):
+        plan_for("tiny", precision="fp16")
+
+
+def test_precision_travels_with_the_plan_and_a_rerun_must_match_it(tmp_path):
+    """`bench paper --precision bf16` reaches every stage through the plan (seed workers rebuild it from
+    plan.json); a plan.json written before the option means fp32, and a rerun with bf16 into it is refused."""
+    import json
+
+    from services.bench.paper import _check_same_plan
+    from services.bench.plan import BenchConfig
+
+    bf16 = plan_for("tiny", quick=True, precision="bf16")
+    assert BenchConfig.from_dict(json.loads(json.dumps(bf16.to_dict()))).precision == "bf16"
+    path = tmp_path / "plan.json"
+    old = plan_for("tiny", quick=True).to_dict()
+    del old["precision"]                                  # an earlier n3dmap's plan
+    path.write_text(json.dumps(old))
+    _check_same_plan(path, plan_for("tiny", quick=True))  # fp32: the same plan
+    path.write_text(json.dumps(old))
+    with pytest.raises(BenchConfigError, match="precision"):
+        _check_same_plan(path, bf16)

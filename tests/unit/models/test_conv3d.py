@@ -57,3 +57,31 @@ def test_torch_compile_traces_the_module():
     torch.testing.assert_close(y, nn.functional.conv3d(x, conv.weight, conv.bias, padding=1), rtol=1e-4, atol=1e-4)
     y.sum().backward()
     assert x.grad is not None and conv.weight.grad is not None
+
+
+@pytest.mark.parametrize("transposed", [False, True])
+def test_autocast_keeps_a_one_voxel_thick_strided_conv_in_float32(transposed):
+    """oneDNN's CPU bf16 weight gradient breaks for a stride-2 conv whose output (transposed: input) is 1
+    voxel high: NaN weight/bias gradients at these channel counts, heap corruption at smaller ones (the
+    crash of a tiny bf16 training step; core/models/conv3d.py). Under autocast these convs run in float32,
+    so their gradients are finite and match float32 ones; a 2-voxel-high one stays bfloat16."""
+    from core.models.conv3d import ConvTranspose3d
+    torch.manual_seed(0)
+    cls, shape = (ConvTranspose3d, (1, 64, 4, 1, 4)) if transposed else (Conv3d, (1, 64, 8, 2, 8))
+    conv = cls(64, 128 if not transposed else 32, 4, stride=2, padding=1)
+    x = torch.randn(shape)
+    y32 = conv(x)
+    w = torch.randn(y32.shape)
+    (y32 * w).sum().backward()
+    ref = [p.grad.clone() for p in (conv.weight, conv.bias)]
+    conv.zero_grad()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y = conv(x)
+    (y.float() * w).sum().backward()
+    for got, want in zip((conv.weight.grad, conv.bias.grad), ref):
+        assert torch.isfinite(got).all()
+        torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-3)
+    assert y.dtype == torch.float32
+    with torch.autocast("cpu", dtype=torch.bfloat16):   # 2 voxels high on the conv side: bf16 as usual
+        thicker = conv(torch.randn(shape[0], shape[1], 8, 4, 8) if not transposed else torch.randn(1, 64, 4, 2, 4))
+    assert thicker.dtype == torch.bfloat16

@@ -9,7 +9,7 @@ from services.cli.main import main
 
 
 def _bundle(out: Path, task: str, options: dict, *, steps: int, parent: Path | None = None,
-            freeze: tuple[str, ...] = ()) -> Path:
+            freeze: tuple[str, ...] = (), precision: str = "fp32") -> Path:
     from core.bundle import load_bundle, parent_provenance, save_bundle
     from core.models.registry import build_module
     from core.presets import get_preset
@@ -19,7 +19,7 @@ def _bundle(out: Path, task: str, options: dict, *, steps: int, parent: Path | N
     run_dir = out.parent / f"run_{task}"
     config = TrainJobConfig(task=task, data_dir=str(out.parent / "data"), run_dir=str(run_dir), preset="tiny",
                             task_options=options, steps=steps, batch_size=2, lr=1e-3, seed=7,
-                            init_bundle=str(parent) if parent else None, freeze=freeze)
+                            init_bundle=str(parent) if parent else None, freeze=freeze, precision=precision)
     parents = [parent_provenance(load_bundle(parent))] if parent else []
     provenance = run_provenance(config, manifest={"seed": 1000, "split": "train"}, steps=steps, parents=parents)
     return save_bundle(out, modules={"occupancy": build_module("occupancy_head", {"in_channels": 2})},
@@ -27,10 +27,10 @@ def _bundle(out: Path, task: str, options: dict, *, steps: int, parent: Path | N
 
 
 def _chain(tmp_path: Path) -> Path:
-    """pretrain -> egomotion -> occupancy -> detector: the detector bundle has three ancestors."""
+    """pretrain -> egomotion (bf16) -> occupancy -> detector: the detector bundle has three ancestors."""
     pre = _bundle(tmp_path / "pre", "pretrain", {"objective": "contrastive"}, steps=30)
     ego = _bundle(tmp_path / "ego", "egomotion", {"augment": True, "augment_deg": 6.0, "augment_m": 1.0},
-                  steps=20, parent=pre)
+                  steps=20, parent=pre, precision="bf16")
     occ = _bundle(tmp_path / "occ", "occupancy", {"input_views": 2}, steps=10, parent=ego)
     return _bundle(tmp_path / "det", "detector", {"freeze_features": True}, steps=5, parent=occ, freeze=("mapper",))
 
@@ -56,7 +56,8 @@ def test_lineage_is_one_line_per_run_newest_first(tmp_path, capsys):
     assert len(lineage) == 4, text
     assert lineage[0].startswith("    detector(freeze_features=True)  5 steps, seed 7, frozen mapper | ")
     assert lineage[1].startswith("    <- occupancy(input_views=2)  10 steps, seed 7 | ")
-    assert lineage[2].startswith("      <- egomotion(augment=True, augment_deg=6, augment_m=1)  20 steps, seed 7 | ")
+    assert lineage[2].startswith("      <- egomotion(augment=True, augment_deg=6, augment_m=1)  "
+                                 "20 steps, seed 7, bf16 | ")
     assert lineage[3].startswith("        <- pretrain(objective=contrastive)  30 steps, seed 7 | ")
     commit = git_commit()
     for line, task in zip(lineage, ("detector", "occupancy", "egomotion", "pretrain")):

@@ -67,7 +67,7 @@ def test_forwarded_argv_drops_submission_flags_and_makes_paths_absolute(tmp_path
 
     monkeypatch.chdir(tmp_path)
     given = ["train", "pretrain", "--data", "d", "--run-dir", "r", "--objective", "regression", "--steps", "7",
-             "--freeze-features", "--address", "http://h:8265", "--follow", "--workers", "2"]
+             "--freeze-features", "--address", "http://h:8265", "--follow", "--workers", "2", "--precision", "bf16"]
     args = build_parser(given).parse_args(given)
     argv = forwarded_argv("pretrain", args)
     assert argv[:2] == ["train", "pretrain"] and argv[-1] == "--attach"
@@ -78,7 +78,7 @@ def test_forwarded_argv_drops_submission_flags_and_makes_paths_absolute(tmp_path
     assert argv[argv.index("--objective") + 1] == "regression"
     # Parsing the forwarded command gives the same options back.
     again = build_parser(argv).parse_args(argv)
-    for name in ("steps", "objective", "freeze_features", "workers"):
+    for name in ("steps", "objective", "freeze_features", "workers", "precision"):
         assert getattr(again, name) == getattr(args, name)
     assert again.attach and again.address is None
 

@@ -84,3 +84,35 @@ def test_freeze_keeps_named_modules_fixed(tmp_path):
         _run(_config(tmp_path, steps=3, freeze=("head",)), toy_records(8))
     with pytest.raises(TrainingError, match="no module 'mapper'"):
         _run(_config(tmp_path, steps=3, freeze=("mapper",)), toy_records(8))
+
+
+@pytest.mark.parametrize("precision, dtype", [("fp32", "float32"), ("bf16", "bfloat16")])
+def test_precision_sets_the_forwards_autocast(tmp_path, precision, dtype):
+    """--precision bf16 runs the task's forward under bfloat16 autocast (through the device's type), fp32
+    without; the weights stay float32 either way. The config reaches Ray workers as to_dict/from_dict
+    (services.training.job.ray_train_func), which keeps the field."""
+    import torch
+
+    from tests.unit.training.toy import ToyTask
+
+    tasks = []
+
+    def build(config, device):
+        tasks.append(ToyTask().to(device))
+        return tasks[-1]
+
+    spec = toy_spec()
+    spec = type(spec)(build=build, to_batch=spec.to_batch, exported=spec.exported)
+    config = _config(tmp_path, steps=3, precision=precision)
+    outcome = train_loop(config, LocalSession(config, dataset=toy_records(16)), spec)
+    assert outcome.status == "finished" and outcome.step == 3
+    assert tasks[0].pred_dtypes == [getattr(torch, dtype)] * 3
+    assert tasks[0].head.weight.dtype == torch.float32
+    assert TrainJobConfig.from_dict(config.to_dict()).precision == precision
+
+
+def test_unknown_precision_is_a_config_error(tmp_path):
+    from services.training.config import TrainConfigError
+
+    with pytest.raises(TrainConfigError, match="--precision must be one of"):
+        _config(tmp_path, precision="fp16")

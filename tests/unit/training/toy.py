@@ -26,6 +26,7 @@ class ToyTask(nn.Module):
         self.head = nn.Linear(3, 1)
         self.nan_at_call = nan_at_call
         self.calls = 0
+        self.pred_dtypes: list[torch.dtype] = []   # the linear layer's output dtype, per call (autocast: bf16)
 
     def exported_modules(self) -> dict:
         return {"head": self.head}
@@ -33,6 +34,7 @@ class ToyTask(nn.Module):
     def forward(self, batch: dict) -> dict:
         self.calls += 1
         pred = self.head(batch["x"]).squeeze(-1)                 # B
+        self.pred_dtypes.append(pred.dtype)
         err = pred - batch["y"]                                   # B
         loss = (err ** 2).mean()
         if self.nan_at_call is not None and self.calls >= self.nan_at_call:
