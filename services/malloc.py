@@ -9,8 +9,8 @@ the C library is not glibc:
    fresh mmap and unmaps it on free, so each training step's or stream frame's large tensors (the paper
    grid's 64 MiB feature maps, the small grid's 4 MiB ones) were faulted in page by page, every time.
    Measured (tests/benchmarks/bench_encoder.py, paper-grid encoder, 2 threads, one process per setting,
-   same load): forward 229 → 143 ms (0.79 → 1.25 × the same run's 2048² SGEMM rate), forward+backward
-   fp32 0.75 → 0.56 s, bf16 0.48 → 0.31 s. The price: the process keeps its peak heap instead of
+   alternating, nothing else running, load 1.3–1.6): forward 188–199 → 131–138 ms (0.85–0.89 → 1.22 × the
+   same run's 2048² SGEMM rate), forward+backward fp32 0.67–0.68 → 0.44–0.45 s, bf16 0.43–0.45 → 0.29 s. The price: the process keeps its peak heap instead of
    returning it (RSS stays at the high-water mark), which is what a process that repeats the same step
    needs anyway. jemalloc and tcmalloc are not in the package index n3dmap installs from, and this gets
    the same effect (no page faults on reused memory) without a preload.
