@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from core.geometry.poses import rig_cam_T_ref
-from core.models.egomotion_inputs import fused_input_volume
+from core.models.egomotion_inputs import egomotion_input_volume
 from core.pipeline.moving_boxes import FrameEvidence, frame_evidence
 
 
@@ -62,7 +62,7 @@ def encode_previous(bundle, *, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam
     enc = FrameEncoding() if cached is None else replace(cached)
     cam_T_ref = rig_cam_T_ref(world_T_cam, world_T_ref)  # B×V×4×4
     if ego_volume and enc.ego_volume is None and "egomotion" in bundle.modules:
-        enc.ego_volume = fused_input_volume(rgb, depth, pix_T_cam, cam_T_ref, bundle.modules["egomotion"].grid)
+        enc.ego_volume = egomotion_input_volume(bundle.modules["egomotion"], rgb, depth, pix_T_cam, cam_T_ref)
         watch.lap("ego_volume")
     if enc.features is None:
         enc.features = bundle.require("mapper")(rgb, depth, pix_T_cam, cam_T_ref)  # B×F×Z×Y×X

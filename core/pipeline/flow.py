@@ -16,7 +16,7 @@ import torch
 
 from core.geometry import se3
 from core.geometry.poses import rig_cam_T_ref
-from core.models.egomotion_inputs import fused_input_volume
+from core.models.egomotion_inputs import egomotion_input_volume, fused_input_volume
 from core.pipeline.egomotion import egomotion_from_volumes
 from core.pipeline.encoding import FrameEncoding, Stopwatch, encode_previous
 from core.pipeline.stabilise import STABILISE, identity_like, poses_ref0_T_ref1, resolve_stabilise
@@ -69,7 +69,7 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
     out: dict = {"previous": enc0, "current": FrameEncoding()}
     if run_ego:
         net = bundle.modules["egomotion"]
-        out["current"].ego_volume = fused_input_volume(rgb1, depth1, pix_T_cam1, cam1_T_ref1, net.grid)  # B×4×Z×Y×X
+        out["current"].ego_volume = egomotion_input_volume(net, rgb1, depth1, pix_T_cam1, cam1_T_ref1)  # B×4×Z×Y×X
         watch.lap("ego_volume")
         ego = egomotion_from_volumes(net, enc0.ego_volume, out["current"].ego_volume, cam_T_ref0, cam1_T_ref1)
         out["cam0_T_cam1"] = ego["cam0_T_cam1"]
@@ -85,8 +85,10 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
     if flow_net.inputs != "volume":  # a volume-input flow module never reads frame 1's map: skip the mapper
         f1 = out["features1"] = mapper(rgb1, depth1, pix_T_cam1, cam1_T_ref0)  # B×F×Z×Y×X, stabilised into ref0
         watch.lap("map_current")
-    # Frame 0's egomotion input volume is the flow's v0 too when the module compares input volumes.
-    same_grid = "egomotion" in bundle.modules and bundle.modules["egomotion"].grid == mapper.grid
+    # Frame 0's egomotion input volume is the flow's v0 too when the module compares input volumes (the
+    # flow module reads binary occupancy: an egomotion module on splatted occupancy has its own volume).
+    same_grid = ("egomotion" in bundle.modules and bundle.modules["egomotion"].grid == mapper.grid
+                 and getattr(bundle.modules["egomotion"], "input_occupancy", "binary") == "binary")
     raw = flow_net(*flow_pair(flow_net, mapper.grid, features=(enc0.features, f1), rgb=(rgb0, rgb1),
                               depth=(depth0, depth1), pix_T_cam=(pix_T_cam0, pix_T_cam1),
                               cam_T_ref0=(cam_T_ref0, cam1_T_ref0),
