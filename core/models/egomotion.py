@@ -28,6 +28,22 @@ zero, so an untrained module is the plain soft-argmax correlator; with `soft_arg
 the identity. Measured on tiny held-out pairs (tests/benchmarks/bench_issue4_training.py): the MLP
 alone, trained from identity, added spurious rotation (3.2° vs identity 0.87°) — the prior fixes the
 scale and sign of the update, so the MLP only learns a small correction.
+
+Sub-voxel stage (`refine`, core.models.egomotion_refine.FeatureMetricRefiner; None by default here and
+in every bundle saved before it, on for new modules from core.tasks.egomotion): after the coarse scales,
+a few Gauss-Newton iterations of dense alignment on the FULL grid of the input volumes' occupancy channel,
+weighted per voxel by confidences learned from the encoder's features, differentiable (trained by the
+pose loss on its output). It needs `input_occupancy="splat"` (continuous occupancy,
+core.models.input_volume) to be worth it. Why (small preset, 8 moving-camera test pairs, true motion
+0.012 rad / 0.81 m, tests/benchmarks/bench_egomotion_precision.py): trained 300 steps on binary occupancy,
+the coarse scales end at R 0.0078 rad / t 0.23 m (2 m scale 0.010 / 0.19, 1 m scale no better); the
+best hard choice of the 1 m scale's lattice from its entering estimate is 0.008 / 0.19 m, and binary
+occupancy itself is a floor near ICP's error ×3: dense alignment of two binary volumes of the SAME points,
+moved by the true motion, ends 0.0034 rad / 0.061 m off (splatted: 0.0005 / 0.005). With splatted input
+and this stage: R 0.00125-0.00130 rad / t 0.024-0.027 m (seeds 0, 1 × 300 steps; 0, 2 × 100) against
+point-to-plane ICP's 0.00107 / 0.026; on 32 fresh moving-camera pairs (seed 7, not used to tune the
+stage) R 0.00185-0.00194 / t 0.039-0.043 against ICP's 0.00137 / 0.038 (README "Egomotion"). Cost:
+≈ 30 ms per pair at small on one thread.
 """
 
 from __future__ import annotations
@@ -44,8 +60,10 @@ from core.geometry.grid import GridConfig
 from core.geometry.resample import warp_rigid
 from core.geometry.warp_many import warp_rigid_many
 from core.models.cost_volume import displacements, mean_correlation_3d
+from core.models.egomotion_refine import FeatureMetricRefiner
 from core.models.egomotion_rotations import candidate_angles, candidate_rotations
 from core.models.encoder3d import Encoder3D
+from core.models.input_volume import OCCUPANCY_KINDS
 from core.precision import full_precision, geometry_dtype
 
 
@@ -76,7 +94,7 @@ class EgomotionNet(nn.Module):
                  rotation_steps_deg: tuple[tuple[float, float, float], ...] | None = None,
                  rotation_counts: tuple[int, int, int] = (3, 3, 3),
                  radius: tuple[int, int, int] = (2, 1, 2), hidden: int = 128, soft_argmax: bool = True,
-                 temperature: float = 4.0) -> None:
+                 temperature: float = 4.0, input_occupancy: str = "binary", refine: dict | None = None) -> None:
         super().__init__()
         self.grid = grid if isinstance(grid, GridConfig) else GridConfig.from_dict(grid)
         self.scales = tuple(scales) if scales is not None else default_scales(self.grid)
@@ -111,13 +129,22 @@ class EgomotionNet(nn.Module):
             self.register_buffer(f"candidate_angles_{i}", candidate_angles(steps, self.rotation_counts),
                                  persistent=False)
         self.register_buffer("displacements", displacements(self.radius), persistent=False)
+        # Sub-voxel stage (core.models.egomotion_refine); None (the default, and every module saved before
+        # it existed): the coarse scales' estimate is final. `input_occupancy` says which occupancy the
+        # module's input volumes carry (core.models.egomotion_inputs.egomotion_input_volume builds them).
+        if input_occupancy not in OCCUPANCY_KINDS:
+            raise ValueError(f"EgomotionNet: input_occupancy must be one of {OCCUPANCY_KINDS}")
+        self.input_occupancy = input_occupancy
+        self.refiner = None if refine is None else FeatureMetricRefiner(feature_dim=feature_dim, **refine)
 
     def config(self) -> dict:
         return {"grid": self.grid.to_dict(), "in_channels": self.in_channels, "width": self.width,
                 "feature_dim": self.feature_dim, "scales": list(self.scales),
                 "rotation_steps_deg": [list(s) for s in self.rotation_steps_deg],
                 "rotation_counts": list(self.rotation_counts), "radius": list(self.radius),
-                "hidden": self.hidden, "soft_argmax": self.soft_argmax, "temperature": self.temperature}
+                "hidden": self.hidden, "soft_argmax": self.soft_argmax, "temperature": self.temperature,
+                "input_occupancy": self.input_occupancy,
+                "refine": None if self.refiner is None else self.refiner.config()}
 
     def scale_grid(self, scale: float) -> GridConfig:
         return self.grid if scale == 1.0 else self.grid.scaled(scale)
@@ -137,8 +164,7 @@ class EgomotionNet(nn.Module):
         reference, query: B×C×Zs×Ys×Xs (query = the ORIGINAL pooled ref1 features), estimate: B×4×4,
         candidates: R×4×4 -> B×(R·D) standardised scores.
         """
-        B, C = reference.shape[:2]
-        R = candidates.shape[0]
+        B = reference.shape[0]
         composed = se3.compose(candidates.unsqueeze(0), estimate.unsqueeze(1))  # B×R×4×4: R_i · E
         # Each example's ONE query under its R candidates (no R copies of it).
         warped = torch.stack([self.warp_query(query[b:b + 1], composed[b], grid) for b in range(B)])  # B×R×C×Zs×Ys×Xs
@@ -170,9 +196,11 @@ class EgomotionNet(nn.Module):
         check_shape("input volume", volume, (None, self.in_channels, *self.grid.shape_zyx))
         return self.encoder(volume)
 
-    def align(self, ref_feat: torch.Tensor, query_feat: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The coarse-to-fine alignment of encoded volumes: ref_feat (ref0), query_feat (ref1) B×F×Z×Y×X ->
-        `ref0_T_ref1` B×4×4 and `per_scale` S×B×4×4 (see the module doc)."""
+    def align(self, ref_feat: torch.Tensor, query_feat: torch.Tensor, reference_input: torch.Tensor | None = None,
+              query_input: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """The alignment of encoded volumes: ref_feat (ref0), query_feat (ref1) B×F×Z×Y×X -> `ref0_T_ref1`
+        B×4×4 and `per_scale` S×B×4×4 (see the module doc); with the sub-voxel stage (which also reads the
+        input volumes B×Cin×Z×Y×X the features were encoded from) also `refine_steps` K×B×4×4."""
         check_shape("ref_feat", ref_feat, (None, self.feature_dim, *self.grid.shape_zyx))
         check_shape("query_feat", query_feat, tuple(ref_feat.shape))
         B = ref_feat.shape[0]
@@ -190,18 +218,28 @@ class EgomotionNet(nn.Module):
                 delta = delta + self.prior_update(scores, i, grid_s)
             estimate = se3.compose(se3_exp_update(delta), estimate.detach())  # B×4×4
             per_scale.append(estimate)
-        return {"ref0_T_ref1": estimate, "per_scale": torch.stack(per_scale, dim=0)}
+        out = {"ref0_T_ref1": estimate, "per_scale": torch.stack(per_scale, dim=0)}
+        if self.refiner is not None:
+            if reference_input is None or query_input is None:
+                raise ValueError("EgomotionNet.align: this module refines on the input volumes; pass them")
+            check_shape("reference_input", reference_input, (B, self.in_channels, *self.grid.shape_zyx))
+            check_shape("query_input", query_input, tuple(reference_input.shape))
+            refined, steps = self.refiner(reference_input, query_input, ref_feat, query_feat, estimate.detach(),
+                                          self.grid)
+            out.update(ref0_T_ref1=refined, refine_steps=torch.stack(steps, dim=0))
+        return out
 
     def forward(self, reference_input: torch.Tensor, query_input: torch.Tensor) -> dict[str, torch.Tensor]:
         """reference_input (ref0), query_input (ref1): B×Cin×Z×Y×X input volumes.
 
-        Returns `ref0_T_ref1` B×4×4 (final) and `per_scale` S×B×4×4 (estimate after each scale).
+        Returns `ref0_T_ref1` B×4×4 (final) and `per_scale` S×B×4×4 (estimate after each scale); with the
+        sub-voxel stage also `refine_steps` K×B×4×4 (after each of its iterations; the last is final).
         """
         check_shape("reference_input", reference_input, (None, self.in_channels, *self.grid.shape_zyx))
         check_shape("query_input", query_input, tuple(reference_input.shape))
         B = reference_input.shape[0]
         feats = self.encoder(torch.cat([reference_input, query_input], dim=0))  # 2B×F×Z×Y×X (one batch: training)
-        return self.align(feats[:B], feats[B:])
+        return self.align(feats[:B], feats[B:], reference_input, query_input)
 
 
 def pose_loss(est_T: torch.Tensor, gt_T: torch.Tensor, *, rotation_weight: float = 10.0) -> dict[str, torch.Tensor]:

@@ -13,7 +13,7 @@ import torch
 from core.errors import check_shape
 from core.geometry import se3
 from core.geometry.poses import rig_cam_T_ref
-from core.models.egomotion_inputs import fused_input_volume
+from core.models.egomotion_inputs import egomotion_input_volume
 
 
 def egomotion_from_volumes(net, vol0: torch.Tensor, vol1: torch.Tensor, cam_T_ref0: torch.Tensor,
@@ -28,7 +28,7 @@ def egomotion_from_volumes(net, vol0: torch.Tensor, vol1: torch.Tensor, cam_T_re
     else:
         f0 = net.encode(vol0) if f0 is None else f0  # B×F'×Z×Y×X
         f1 = net.encode(vol1) if f1 is None else f1
-        ref0_T_ref1 = net.align(f0, f1)["ref0_T_ref1"]  # B×4×4
+        ref0_T_ref1 = net.align(f0, f1, vol0, vol1)["ref0_T_ref1"]  # B×4×4
     cam0_T_cam1 = cam_T_ref0[:, 0] @ ref0_T_ref1 @ se3.invert(cam_T_ref1[:, 0])
     return {"ref0_T_ref1": ref0_T_ref1, "cam0_T_cam1": cam0_T_cam1}
 
@@ -47,6 +47,6 @@ def estimate_egomotion(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_
         check_shape(name, t, (B, V, 4, 4))
     cam_T_ref0 = rig_cam_T_ref(world_T_cam0, world_T_ref0)  # B×V×4×4
     cam_T_ref1 = rig_cam_T_ref(world_T_cam1, world_T_ref1)
-    vol0 = fused_input_volume(rgb0, depth0, pix_T_cam0, cam_T_ref0, net.grid)  # B×4×Z×Y×X
-    vol1 = fused_input_volume(rgb1, depth1, pix_T_cam1, cam_T_ref1, net.grid)
+    vol0 = egomotion_input_volume(net, rgb0, depth0, pix_T_cam0, cam_T_ref0)  # B×4×Z×Y×X
+    vol1 = egomotion_input_volume(net, rgb1, depth1, pix_T_cam1, cam_T_ref1)
     return egomotion_from_volumes(net, vol0, vol1, cam_T_ref0, cam_T_ref1)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from core.geometry.poses import rig_cam_T_ref
-from core.models.egomotion_inputs import fused_input_volume
+from core.models.egomotion_inputs import egomotion_input_volume, fused_input_volume
 from core.pipeline.moving_boxes import FrameEvidence, frame_evidence
 
 
@@ -29,7 +29,8 @@ class FrameEncoding:
     encoded once on a stream; features: B×F×Z×Y×X mapper map (None when nothing in the pair step reads it:
     see `needs_map`); occupancy: B×1×Z×Y×X probabilities (None without an occupancy head);
     flow_encoded: B×C×Z×Y×X the flow module's encoding of what it compares of this frame (Flow3D.encode of
-    the map, or of the ego volume when the flow module compares input volumes on the same grid);
+    the map, or of the binary input volume when the flow module compares input volumes); flow_volume:
+    B×4×Z×Y×X that binary input volume on the mapper's grid where it is not the ego volume;
     evidence: what the frame's depth alone says (observed voxels, ground plane, viewpoints). A field is
     None until `encode_previous` filled it."""
 
@@ -37,6 +38,7 @@ class FrameEncoding:
     ego_features: torch.Tensor | None = None
     features: torch.Tensor | None = None
     flow_encoded: torch.Tensor | None = None
+    flow_volume: torch.Tensor | None = None
     occupancy: torch.Tensor | None = None
     evidence: FrameEvidence | None = None
 
@@ -62,16 +64,23 @@ def needs_map(bundle) -> bool:
     return "occupancy" in bundle.modules or flow is None or getattr(flow, "inputs", "features") != "volume"
 
 
+def shares_ego_volume(bundle) -> bool:
+    """Whether a flow module over input volumes can read the egomotion module's input volume: the same grid
+    and binary occupancy (an egomotion module on splatted occupancy has its own volume)."""
+    ego = bundle.modules.get("egomotion")
+    return (ego is not None and ego.grid == bundle.modules["mapper"].grid
+            and getattr(ego, "input_occupancy", "binary") == "binary")
+
+
 def flow_input(bundle, enc: FrameEncoding) -> torch.Tensor | None:
-    """What the flow module compares of this frame, in its own ref, if `enc` holds it: the map, or the ego
-    volume for a flow module over input volumes on the egomotion module's grid (None otherwise)."""
+    """What the flow module compares of this frame, in its own ref, if `enc` holds it: the map, or the
+    binary input volume (the ego volume where `shares_ego_volume`, else `flow_volume`); None otherwise."""
     flow = bundle.modules.get("flow")
     if flow is None:
         return None
     if flow.inputs != "volume":
         return enc.features
-    ego = bundle.modules.get("egomotion")
-    return enc.ego_volume if ego is not None and ego.grid == bundle.modules["mapper"].grid else None
+    return enc.ego_volume if shares_ego_volume(bundle) else enc.flow_volume
 
 
 def is_complete(enc: FrameEncoding | None, bundle, *, evidence: bool = True) -> bool:
@@ -104,7 +113,7 @@ def encode_previous(bundle, *, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam
     enc = FrameEncoding() if cached is None else replace(cached)
     cam_T_ref = rig_cam_T_ref(world_T_cam, world_T_ref)  # B×V×4×4
     if ego_volume and enc.ego_volume is None and "egomotion" in bundle.modules:
-        enc.ego_volume = fused_input_volume(rgb, depth, pix_T_cam, cam_T_ref, bundle.modules["egomotion"].grid)
+        enc.ego_volume = egomotion_input_volume(bundle.modules["egomotion"], rgb, depth, pix_T_cam, cam_T_ref)
         watch.lap("ego_volume")
     if ego_volume and enc.ego_features is None and enc.ego_volume is not None:
         enc.ego_features = bundle.modules["egomotion"].encode(enc.ego_volume)  # B×F'×Z×Y×X
@@ -116,6 +125,11 @@ def encode_previous(bundle, *, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam
         if "occupancy" in bundle.modules:
             enc.occupancy = bundle.modules["occupancy"].probabilities(enc.features)  # B×1×Z×Y×X
         watch.lap("map_previous")
+    flow = bundle.modules.get("flow")
+    if (flow_encoding and flow is not None and flow.inputs == "volume" and not shares_ego_volume(bundle)
+            and enc.flow_volume is None):
+        enc.flow_volume = fused_input_volume(rgb, depth, pix_T_cam, cam_T_ref, bundle.modules["mapper"].grid)
+        watch.lap("flow_volume")
     if flow_encoding and enc.flow_encoded is None and (flow_in := flow_input(bundle, enc)) is not None:
         enc.flow_encoded = bundle.modules["flow"].encode(flow_in)  # B×C×Z×Y×X
         watch.lap("flow_encode")

@@ -18,9 +18,9 @@ import torch
 
 from core.geometry import se3
 from core.geometry.poses import rig_cam_T_ref
-from core.models.egomotion_inputs import fused_input_volume
+from core.models.egomotion_inputs import egomotion_input_volume, fused_input_volume
 from core.pipeline.egomotion import egomotion_from_volumes
-from core.pipeline.encoding import FrameEncoding, Stopwatch, encode_previous
+from core.pipeline.encoding import FrameEncoding, Stopwatch, encode_previous, shares_ego_volume
 from core.pipeline.stabilise import STABILISE, identity_like, poses_ref0_T_ref1, resolve_stabilise
 
 __all__ = ["STABILISE", "estimate_flow", "flow_pair", "flow_step"]
@@ -81,7 +81,7 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
     if run_ego:
         net = bundle.modules["egomotion"]
         if current.ego_volume is None:
-            current.ego_volume = fused_input_volume(rgb1, depth1, pix_T_cam1, cam1_T_ref1, net.grid)  # B×4×Z×Y×X
+            current.ego_volume = egomotion_input_volume(net, rgb1, depth1, pix_T_cam1, cam1_T_ref1)  # B×4×Z×Y×X
             watch.lap("ego_volume")
         if current.ego_features is None:
             current.ego_features = net.encode(current.ego_volume)  # B×F'×Z×Y×X, the next pair's reference
@@ -103,12 +103,13 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
     if flow_net.inputs != "volume":  # a volume-input flow module never reads frame 1's map: skip the mapper
         f1 = out["features1"] = mapper(rgb1, depth1, pix_T_cam1, cam1_T_ref0)  # B×F×Z×Y×X, stabilised into ref0
         watch.lap("map_current")
-    # Frame 0's egomotion input volume is the flow's v0 too when the module compares input volumes.
-    same_grid = "egomotion" in bundle.modules and bundle.modules["egomotion"].grid == mapper.grid
+    # Frame 0's binary input volume, kept: the egomotion module's where it is the same volume
+    # (core.pipeline.encoding.shares_ego_volume), else the flow's own.
+    v0 = enc0.ego_volume if shares_ego_volume(bundle) else enc0.flow_volume
     raw = flow_net(*flow_pair(flow_net, mapper.grid, features=(enc0.features, f1), rgb=(rgb0, rgb1),
                               depth=(depth0, depth1), pix_T_cam=(pix_T_cam0, pix_T_cam1),
                               cam_T_ref0=(cam_T_ref0, cam1_T_ref0),
-                              volumes=(enc0.ego_volume if same_grid else None, None)),
+                              volumes=(v0, None)),
                    encoded0=enc0.flow_encoded)["flow"]  # B×3×Z×Y×X
     flow = raw if enc0.occupancy is None else raw * (enc0.occupancy >= occupancy_threshold).to(raw.dtype)
     watch.lap("flow")

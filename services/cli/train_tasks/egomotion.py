@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 from services.cli.train import add_task_parser, run_train
 
 
@@ -14,5 +16,17 @@ def register(tasks) -> None:
     parser.add_argument("--no-augment", action="store_true", help="train on the recorded motion only")
     parser.add_argument("--augment-deg", type=float, default=6.0, help="largest yaw perturbation (degrees)")
     parser.add_argument("--augment-m", type=float, default=1.0, help="largest x/z perturbation (metres)")
-    parser.set_defaults(func=lambda args: run_train("egomotion", args, {
-        "augment": not args.no_augment, "augment_deg": args.augment_deg, "augment_m": args.augment_m}))
+    parser.add_argument("--occupancy", choices=("binary", "splat"), default=None,
+                        help="occupancy channel of the input volumes (default: the task's)")
+    parser.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,
+                        help="add the sub-voxel Gauss-Newton stage (default: the task's)")
+
+    def options(args) -> dict:
+        opts = {"augment": not args.no_augment, "augment_deg": args.augment_deg, "augment_m": args.augment_m}
+        if args.occupancy is not None:
+            opts["input_occupancy"] = args.occupancy
+        if args.refine is not None:
+            opts["refine"] = args.refine
+        return opts
+
+    parser.set_defaults(func=lambda args: run_train("egomotion", args, options(args)))

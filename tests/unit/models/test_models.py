@@ -66,6 +66,29 @@ def test_input_volume_channels(make_views):
     assert in_view.sum() > 0 and (1 - in_view).sum() > 0
 
 
+def test_input_volume_splat_occupancy(make_views):
+    grid = TINY.grid
+    rgb, depth, K, cam_T_ref = make_views(1, 2, 16, 48, grid)
+    binary, _ = input_volume(rgb[:, 0], depth[:, 0], K[:, 0], cam_T_ref[:, 0], grid)
+    vol, _ = input_volume(rgb[:, 0], depth[:, 0], K[:, 0], cam_T_ref[:, 0], grid, occupancy="splat")
+    from core.geometry.camera import depth_to_points
+    from core.geometry.splat import surface_splat
+    xyz, valid = depth_to_points(depth[:, 0], K[:, 0])
+    expected = surface_splat(xyz, valid, K[:, 0], cam_T_ref[:, 0], grid).clamp(max=1.0)
+    torch.testing.assert_close(vol[:, :1], expected)  # the clamped surface splat
+    torch.testing.assert_close(vol[:, 1:], binary[:, 1:])  # colour unchanged
+    assert float(vol[:, :1].min()) >= 0 and float(vol[:, :1].max()) <= 1
+    assert float(vol[:, :1][binary[:, :1] > 0].sum()) > 0
+    # fused over views by max: a view fused with itself is that view
+    from core.models.egomotion_inputs import fused_input_volume
+    twice = fused_input_volume(rgb[:, :1].repeat(1, 2, 1, 1, 1), depth[:, :1].repeat(1, 2, 1, 1),
+                               K[:, :1].repeat(1, 2, 1, 1), cam_T_ref[:, :1].repeat(1, 2, 1, 1), grid,
+                               occupancy="splat")
+    torch.testing.assert_close(twice[:, :1], vol[:, :1])
+    with pytest.raises(ValueError):
+        input_volume(rgb[:, 0], depth[:, 0], K[:, 0], cam_T_ref[:, 0], grid, occupancy="dense")
+
+
 def test_masked_average_matches_loop_and_running_map():
     feats = torch.randn(1, 3, 2, 2, 2, 3)
     masks = (torch.rand(1, 3, 1, 2, 2, 3) > 0.5).float()
