@@ -79,3 +79,18 @@ def test_free_space_chunking_is_invisible(monkeypatch):
     whole = free_space(xyz, None, pose, GRID)
     monkeypatch.setattr(fs, "_CHUNK_ELEMENTS", 50)
     assert torch.equal(free_space(xyz, None, pose, GRID), whole)
+
+
+def test_axis_parallel_rays_and_a_camera_outside_the_grid_match_the_slow_walk():
+    """Rays with a zero component (parallel to a plane family, off the planes) and a camera behind the grid,
+    so every ray enters through a face: the walk's box clipping and entry voxel against the per-ray walk."""
+    g = torch.Generator().manual_seed(2)
+    N = 60
+    cam_T_ref = se3.from_rt(torch.eye(3, dtype=D)[None], torch.tensor([[0.3, -0.2, 2.0]], dtype=D))  # camera 2 m behind
+    xyz = torch.rand(1, N, 3, generator=g, dtype=D) * torch.tensor([9.0, 5.0, 9.0], dtype=D) - torch.tensor([4.5, 2.5, 0.0], dtype=D)
+    xyz[0, :20, 0] = 0.0   # x = 0 in the camera: no x motion
+    xyz[0, 20:40, 1] = 0.0  # y = 0: no y motion
+    got = free_space(xyz, None, cam_T_ref, GRID)
+    expected = _slow_free_space(xyz, torch.ones(1, N, dtype=torch.bool), cam_T_ref, GRID)
+    assert expected.sum() > 20
+    assert torch.equal(got, expected)
