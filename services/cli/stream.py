@@ -146,11 +146,13 @@ def _run_bridge(args: argparse.Namespace) -> int:
         processor = RuntimeProcessor(runtime, min_score=args.min_score, frame_dt=args.frame_dt, size_prior=prior)
     except ValueError as e:
         raise CliError(str(e)) from None
+    warm_s = processor.warm_up()  # before "ready": the first frames do not pay the models' one-time costs
     stop = _stop_event()
     bridge = Bridge(processor=processor, zenoh_options=options, cameras=args.cameras, bridge_id=args.bridge_id,
                     lookahead=args.lookahead)
     bridge.start()
-    print(f"bridge {bridge.bridge_id} ready: bundle {runtime.version}, modules {', '.join(runtime.modules)}, "
+    print(f"bridge {bridge.bridge_id} ready (models warmed up in {warm_s:.1f} s): bundle {runtime.version}, "
+          f"modules {', '.join(runtime.modules)}, "
           f"zenoh {options.mode} listen={list(options.listen)} connect={list(options.connect)}", file=sys.stderr, flush=True)
     started = time.monotonic()
     last_status = started

@@ -140,6 +140,27 @@ class MovingStream:
         return AheadEncoding(frame=frame, bundle_version=version, encoding=encoding, ego_previous=ego_previous,
                              ego_estimate=ego_estimate)
 
+    def warm_up(self) -> float:
+        """Warm the models up before any frame arrives, for single-view frames of the bundle preset's camera
+        size (what `n3dmap stream camera` publishes): a wall of depth 10 m, seen twice. Frames of another
+        size warm up on their camera's first frame instead. Returns the seconds it took. Why before: the
+        bridge's look-ahead thread makes a frame's encoding while the frame still sits in its camera's slot,
+        and a cold first encoding (seconds on a loaded machine) let the second frame replace the first."""
+        from core.geometry.camera import intrinsics_from_fov
+        from services.inference.validation import make_view
+
+        bundle, version = self.runtime.bundle, self.runtime.version
+        camera = bundle.preset.camera
+        frame = make_view(rgb=np.full((camera.H, camera.W, 3), 128, np.uint8),
+                          depth=np.full((camera.H, camera.W), 10.0, np.float32),
+                          pix_T_cam=intrinsics_from_fov(camera.H, camera.W, camera.hfov_deg)[0].numpy(),
+                          world_T_cam=np.eye(4, dtype=np.float32), field="warm-up")
+        started = time.perf_counter()
+        self._warm_up(bundle, version, frame)
+        if "egomotion" in bundle.modules:  # the look-ahead's own path (encode, then align against a frame)
+            self.encode_ahead(frame, self.encode_ahead(frame))
+        return time.perf_counter() - started
+
     def _warm_up(self, bundle, version: str, frame: View) -> None:
         """Run one throwaway pair step (the frame with itself) the first time a bundle meets an image size.
         Why: the first steps pay one-time costs (oneDNN builds its kernels for each new shape, the allocator

@@ -326,3 +326,20 @@ def test_the_map_is_made_only_when_a_step_reads_it(bundle_dir, frames):
     with_occupancy: dict = {}
     moving_step(full, **pair, dt=STEP_S, timings=with_occupancy)
     assert "map_previous" in with_occupancy  # the occupancy gate reads the map, whatever the flow compares
+
+
+def test_the_bridge_warms_up_before_its_first_frame(bundle_dir, frames):
+    """`warm_up()` (run before the bridge says ready) covers frames of the preset camera's size, so their first
+    frame does not warm up again; the answers are unchanged by it."""
+    runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
+    processor = RuntimeProcessor(runtime, min_score=-1.0)
+    assert processor.warm_up() > 0
+    views = decoded(frames[:2])
+    assert views[0].depth.shape == (TINY.camera.H, TINY.camera.W)
+    state = CameraState()
+    processor.process("c", state, views[0])
+    state.advance(views[0])
+    got = types_pb2.Detections.FromString(processor.process("c", state, views[1]).moving_objects)
+    assert processor.stats()["warm_up"]["count"] == 1
+    _assert_boxes_equal(got, reference_moving_objects(runtime.bundle, pair_of(views[0], views[1]),
+                                                      stabilize="egomotion", dt=STEP_S))
