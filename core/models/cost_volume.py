@@ -69,7 +69,8 @@ def mean_correlation_3d(reference: torch.Tensor, queries: torch.Tensor, radius: 
     if min(rx, ry, rz) < 0:
         raise ShapeError(f"mean_correlation_3d: radius must be non-negative, got {radius}")
     R = queries.shape[1]
-    padded = F.pad(reference, (rx, rx, ry, ry, rz, rz)).reshape(1, B * C, Z + 2 * rz, Y + 2 * ry, X + 2 * rx)  # 1×(B·C)×…
+    padded = F.pad(reference, (rx, rx, ry, ry, rz, rz))  # B×C×(Z+2rz)×(Y+2ry)×(X+2rx)
+    padded = padded.reshape(1, B * C, *padded.shape[-3:])  # 1×(B·C)×…: the examples as groups
     kernels = queries.reshape(B * R, C, Z, Y, X)  # (B·R)×C×Z×Y×X, example b's kernels form group b
     out = F.conv3d(padded, kernels, groups=B)  # 1×(B·R)×(2rz+1)×(2ry+1)×(2rx+1), index o = r − d per axis
     # Flip so that index d + r (z-major, from −r to r) matches `displacements`.

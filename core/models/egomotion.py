@@ -167,7 +167,8 @@ class EgomotionNet(nn.Module):
         B = reference.shape[0]
         composed = se3.compose(candidates.unsqueeze(0), estimate.unsqueeze(1))  # B×R×4×4: R_i · E
         # Each example's ONE query under its R candidates (no R copies of it).
-        warped = torch.stack([self.warp_query(query[b:b + 1], composed[b], grid) for b in range(B)])  # B×R×C×Zs×Ys×Xs
+        warped = torch.stack([self.warp_query(query[b:b + 1], composed[b], grid)
+                              for b in range(B)])  # B×R×C×Zs×Ys×Xs
         # = cross_correlation_3d(reference, warped_r).mean over space, for every r, as one convolution
         s = mean_correlation_3d(reference, warped, self.radius)  # B×R×D
         s = s.reshape(B, -1)  # B×(R·D), rotation-major as the candidates × displacements

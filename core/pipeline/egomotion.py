@@ -18,7 +18,8 @@ from core.models.egomotion_inputs import egomotion_input_volume
 
 def egomotion_from_volumes(net, vol0: torch.Tensor, vol1: torch.Tensor, cam_T_ref0: torch.Tensor,
                            cam_T_ref1: torch.Tensor, *,
-                           features: tuple[torch.Tensor | None, torch.Tensor | None] = (None, None)) -> dict[str, torch.Tensor]:
+                           features: tuple[torch.Tensor | None, torch.Tensor | None] = (None, None),
+                           ) -> dict[str, torch.Tensor]:
     """The egomotion module on two input volumes B×4×Z×Y×X (each instant in its own ref_t), with
     cam_T_ref0/1 B×V×4×4 -> `ref0_T_ref1` B×4×4 and `cam0_T_cam1` B×4×4 (view 0's camera). `features`:
     the module's encodings of vol0/vol1 (EgomotionNet.encode) when a stream kept them; None = encode here."""
