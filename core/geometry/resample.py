@@ -87,14 +87,19 @@ def warp_rigid(vol_b: torch.Tensor, b_T_a: torch.Tensor, grid: GridConfig) -> to
     """
     check_volume_matches_grid("vol_b", vol_b, grid)
     check_shape("b_T_a", b_T_a, (vol_b.shape[0], 4, 4))
-    B = vol_b.shape[0]
-    dtype, device = vol_b.dtype, vol_b.device
+    xyz_b = rigid_sample_points(b_T_a, grid, dtype=vol_b.dtype).reshape(-1, grid.Z, grid.Y, grid.X, 3)  # B×Z×Y×X×3
+    return sample_volume_at(vol_b, xyz_b)
+
+
+def rigid_sample_points(b_T_a: torch.Tensor, grid: GridConfig, *, dtype: torch.dtype) -> torch.Tensor:
+    """Where each voxel centre of frame a lands in frame b's mem coordinates: b_T_a B×4×4 -> B×(Z·Y·X)×3
+    (x, y, z), voxels in Z, Y, X order (what `warp_rigid` samples)."""
+    B, device = b_T_a.shape[0], b_T_a.device
     memb_T_mema = se3.compose(se3.compose(mem_T_ref(grid, dtype=dtype, device=device).expand(B, 4, 4),
                                           b_T_a.to(dtype)),
                               ref_T_mem(grid, dtype=dtype, device=device).expand(B, 4, 4))  # B×4×4
     centres = voxel_centers_mem(grid, dtype=dtype, device=device).expand(B, -1, 3)  # B×ZYX×3
-    xyz_b = se3.apply(memb_T_mema, centres).reshape(B, grid.Z, grid.Y, grid.X, 3)  # B×Z×Y×X×3
-    return sample_volume_at(vol_b, xyz_b)
+    return se3.apply(memb_T_mema, centres)  # B×ZYX×3
 
 
 def warp_flow(vol: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:

@@ -27,9 +27,8 @@ import torch
 import torch.nn.functional as F
 
 from core.errors import ShapeError, check_shape
-from core.geometry import se3
-from core.geometry.grid import GridConfig, mem_T_ref, ref_T_mem, voxel_centers_mem
-from core.geometry.resample import check_volume_matches_grid
+from core.geometry.grid import GridConfig
+from core.geometry.resample import check_volume_matches_grid, rigid_sample_points
 from core.precision import full_precision
 
 
@@ -72,10 +71,5 @@ def warp_rigid_many(vol_b: torch.Tensor, b_T_a: torch.Tensor, grid: GridConfig) 
     out[r](p) = vol_b(mem(b_T_a[r] · ref(p))) for each voxel centre p (see `warp_rigid`)."""
     check_volume_matches_grid("vol_b", vol_b, grid)
     check_shape("b_T_a", b_T_a, (None, 4, 4))
-    R = b_T_a.shape[0]
-    dtype, device = vol_b.dtype, vol_b.device
-    memb_T_mema = (mem_T_ref(grid, dtype=dtype, device=device) @ b_T_a.to(dtype)
-                   @ ref_T_mem(grid, dtype=dtype, device=device))  # R×4×4
-    centres = voxel_centers_mem(grid, dtype=dtype, device=device).expand(R, -1, 3)  # R×ZYX×3
-    xyz_b = se3.apply(memb_T_mema, centres)  # R×ZYX×3
-    return sample_via_slices(vol_b, xyz_b).reshape(R, vol_b.shape[1], *grid.shape_zyx)  # R×C×Z×Y×X
+    xyz_b = rigid_sample_points(b_T_a, grid, dtype=vol_b.dtype)  # R×ZYX×3
+    return sample_via_slices(vol_b, xyz_b).reshape(b_T_a.shape[0], vol_b.shape[1], *grid.shape_zyx)  # R×C×Z×Y×X

@@ -72,15 +72,19 @@ def shares_ego_volume(bundle) -> bool:
             and getattr(ego, "input_occupancy", "binary") == "binary")
 
 
+def binary_volume(bundle, enc: FrameEncoding) -> torch.Tensor | None:
+    """The frame's binary input volume on the mapper's grid, if `enc` holds it: the egomotion module's where
+    `shares_ego_volume`, else the flow's own `flow_volume`."""
+    return enc.ego_volume if shares_ego_volume(bundle) else enc.flow_volume
+
+
 def flow_input(bundle, enc: FrameEncoding) -> torch.Tensor | None:
     """What the flow module compares of this frame, in its own ref, if `enc` holds it: the map, or the
-    binary input volume (the ego volume where `shares_ego_volume`, else `flow_volume`); None otherwise."""
+    binary input volume (`binary_volume`); None otherwise."""
     flow = bundle.modules.get("flow")
     if flow is None:
         return None
-    if flow.inputs != "volume":
-        return enc.features
-    return enc.ego_volume if shares_ego_volume(bundle) else enc.flow_volume
+    return enc.features if flow.inputs != "volume" else binary_volume(bundle, enc)
 
 
 def is_complete(enc: FrameEncoding | None, bundle, *, evidence: bool = True) -> bool:
@@ -107,8 +111,9 @@ def encode_previous(bundle, *, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam
     volume and its encoding (when the bundle has an egomotion module); `evidence`: make the FrameEvidence
     (boxes need it; flow alone does not), fitting a ground plane when `fit_ground`; `features`: make the
     mapper map (and occupancy), None = only when a pair step reads it (`needs_map`); `flow_encoding`: make
-    the flow module's encoding of the frame (what it compares when the frame is a pair's frame 0). `timings` receives
-    seconds per stage: ego_volume, ego_encode, map_previous, flow_encode, evidence_previous."""
+    the flow module's encoding of the frame (what it compares when the frame is a pair's frame 0).
+    `timings` receives seconds per stage: ego_volume, ego_encode, map_previous, flow_volume, flow_encode,
+    evidence_previous."""
     watch = Stopwatch(timings)
     enc = FrameEncoding() if cached is None else replace(cached)
     cam_T_ref = rig_cam_T_ref(world_T_cam, world_T_ref)  # B×V×4×4

@@ -20,7 +20,7 @@ from core.geometry import se3
 from core.geometry.poses import rig_cam_T_ref
 from core.models.egomotion_inputs import egomotion_input_volume, fused_input_volume
 from core.pipeline.egomotion import egomotion_from_volumes
-from core.pipeline.encoding import FrameEncoding, Stopwatch, encode_previous, shares_ego_volume
+from core.pipeline.encoding import FrameEncoding, Stopwatch, binary_volume, encode_previous
 from core.pipeline.stabilise import STABILISE, identity_like, poses_ref0_T_ref1, resolve_stabilise
 
 __all__ = ["STABILISE", "estimate_flow", "flow_pair", "flow_step"]
@@ -46,8 +46,7 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
               world_T_cam1: torch.Tensor, world_T_ref0: torch.Tensor | None = None,
               world_T_ref1: torch.Tensor | None = None, previous: FrameEncoding | None = None,
               current: FrameEncoding | None = None, ego_estimate: dict[str, torch.Tensor] | None = None,
-              stabilize: str | None = None, egomotion: bool = True,
-              evidence: bool = False,
+              stabilize: str | None = None, egomotion: bool = True, evidence: bool = False,
               fit_ground: bool = True, occupancy_threshold: float = 0.5, features0: bool | None = None,
               timings: dict[str, float] | None = None) -> dict:
     """Inputs as `estimate_egomotion`, plus `previous`: frame 0's FrameEncoding kept from the step before
@@ -63,9 +62,9 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
     Returns {"flow": B×3×Z×Y×X (free voxels zeroed), "flow_raw", "ref0_T_ref1": B×4×4 used to stabilise,
     "cam0_T_cam1": B×4×4 (only when the egomotion module ran), "features1": B×F×Z×Y×X in ref0 (only for a
     flow module that compares maps: one comparing input volumes never needs frame 1's map), "previous":
-    frame 0's FrameEncoding, "current": frame 1's (`current` with its egomotion volume and encoding)}. `timings`
-    receives seconds per stage: ego_volume, ego_encode, map_previous, evidence_previous, egomotion,
-    map_current, flow.
+    frame 0's FrameEncoding, "current": frame 1's (`current` with its egomotion volume and encoding)}.
+    `timings` receives seconds per stage: ego_volume, ego_encode, map_previous, flow_volume, flow_encode,
+    evidence_previous, egomotion, map_current, flow.
     """
     stabilize = resolve_stabilise(bundle, stabilize)
     mapper, flow_net = bundle.require("mapper"), bundle.require("flow")
@@ -103,9 +102,7 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
     if flow_net.inputs != "volume":  # a volume-input flow module never reads frame 1's map: skip the mapper
         f1 = out["features1"] = mapper(rgb1, depth1, pix_T_cam1, cam1_T_ref0)  # B×F×Z×Y×X, stabilised into ref0
         watch.lap("map_current")
-    # Frame 0's binary input volume, kept: the egomotion module's where it is the same volume
-    # (core.pipeline.encoding.shares_ego_volume), else the flow's own.
-    v0 = enc0.ego_volume if shares_ego_volume(bundle) else enc0.flow_volume
+    v0 = binary_volume(bundle, enc0)  # frame 0's binary input volume, when kept
     raw = flow_net(*flow_pair(flow_net, mapper.grid, features=(enc0.features, f1), rgb=(rgb0, rgb1),
                               depth=(depth0, depth1), pix_T_cam=(pix_T_cam0, pix_T_cam1),
                               cam_T_ref0=(cam_T_ref0, cam1_T_ref0),

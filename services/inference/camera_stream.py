@@ -129,10 +129,12 @@ class MovingStream:
                       and previous.encoding.ego_features is not None and encoding.ego_features is not None)
             if usable:
                 started = time.perf_counter()
-                before = views_tensors([stack_views([previous.frame], "previous")], self.runtime.device)
+                # only the previous frame's pose is needed here (its volumes are kept): no image to tensors
+                world_T_cam0 = torch.from_numpy(previous.frame.world_T_cam)[None, None]  # 1×1×4×4
+                world_T_cam0 = world_T_cam0.to(self.runtime.device)
                 ego_estimate = egomotion_from_volumes(
                     bundle.modules["egomotion"], previous.encoding.ego_volume, encoding.ego_volume,
-                    rig_cam_T_ref(before["world_T_cam"], None), rig_cam_T_ref(tensors["world_T_cam"], None),
+                    rig_cam_T_ref(world_T_cam0, None), rig_cam_T_ref(tensors["world_T_cam"], None),
                     features=(previous.encoding.ego_features, encoding.ego_features))
                 ego_previous = previous.frame
                 timings["egomotion"] = time.perf_counter() - started

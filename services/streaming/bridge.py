@@ -14,9 +14,10 @@ frame and makes its own-frame work (`encode_ahead`: nothing in it depends on ano
 worker still runs the step before, so the two cores share a frame's work: the worker's step is left with
 the pair work only. The look-ahead also hands the processor the look-ahead of the frame the worker took
 last for that camera (the frame the step will most likely pair this one with), so that it can make the
-pair's egomotion too; the processor checks that the pairing held before using it. The worker takes a frame only once the look-ahead has finished with it, and does
-the work itself only where the look-ahead failed; a frame replaced in its slot before the worker reached it is
-dropped as before, and its look-ahead work is wasted, never published. Why: at the small preset the
+pair's egomotion too; the processor checks that the pairing held before using it. The worker takes a
+frame only once the look-ahead has finished with it, and does the work itself only where the look-ahead
+failed; a frame replaced in its slot before the worker reached it is dropped as before, and its
+look-ahead work is wasted, never published. Why: at the small preset the
 frame's own work (egomotion volume and encoding, the flow module's encoding of it, its depth evidence)
 was about a third of a step, and one core could not keep up with a 10 Hz camera.
 
@@ -211,7 +212,7 @@ class Bridge:
             while True:
                 if self._stopping:
                     return None
-                ready = [c for c, p in self._slots.items() if not self.lookahead or p.done.is_set()]
+                ready = [c for c, p in self._slots.items() if self._ready(p)]
                 if ready:
                     break
                 self._cond.wait(timeout=0.5)
@@ -220,6 +221,10 @@ class Bridge:
             parked = self._slots.pop(camera)
             self._taken[camera] = parked
         return camera, parked
+
+    def _ready(self, parked: Parked) -> bool:
+        """Whether the worker may take `parked`: always without look-ahead, else once the look-ahead is done."""
+        return not self.lookahead or parked.done.is_set()
 
     def _look_ahead(self) -> None:
         """Decode and encode the newest unclaimed parked frame, beside the worker (see the module doc)."""
@@ -278,7 +283,7 @@ class Bridge:
         if prepare is None or state is None:
             return
         with self._cond:
-            if self._stopping or any(not self.lookahead or p.done.is_set() for p in self._slots.values()):
+            if self._stopping or any(self._ready(p) for p in self._slots.values()):
                 return
         try:
             prepare(camera, state)

@@ -12,16 +12,16 @@ normalisation, from torch.profiler), and the load average. One JSON line, then a
     python tests/benchmarks/bench_encoder.py --malloc tuned        # glibc: no mmap'd chunks, no trimming
     python tests/benchmarks/bench_encoder.py --grid 64 16 64 --width 16 --out-channels 16 --threads 1
 
---malloc tuned (glibc only) calls mallopt before any tensor exists: M_MMAP_MAX 0 (every chunk from the
-heap, even the 64 MiB feature maps, which glibc would otherwise map fresh on each allocation and fault
-in page by page) and M_TRIM_THRESHOLD 1 GiB (freed heap is kept for the next step). See README
-"Performance" for what it measured and why n3dmap does not set it by default.
+--malloc tuned (glibc only) applies `services.malloc.keep_heap()` before any tensor exists, as every n3dmap
+CLI command but `serve` does: M_MMAP_MAX 0 (every chunk from the heap, even the 64 MiB feature maps, which
+glibc would otherwise map fresh on each allocation and fault in page by page) and M_TRIM_THRESHOLD 1 GiB
+(freed heap is kept for the next step). --malloc default leaves glibc's settings (this script does not go
+through the CLI). See README "Performance" for the figures.
 """
 
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import os
 import statistics
@@ -29,18 +29,6 @@ import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
-
-M_TRIM_THRESHOLD, M_MMAP_MAX = -1, -4  # glibc malloc.h
-
-
-def tune_malloc() -> bool:
-    """glibc: allocate every chunk from the heap and keep freed memory (see the module doc)."""
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-    except OSError:
-        return False
-    return bool(libc.mallopt(M_MMAP_MAX, 0)) and bool(libc.mallopt(M_TRIM_THRESHOLD, 1 << 30))
-
 
 def conv_macs(model, x) -> int:
     """Multiply-adds of every Conv3d / ConvTranspose3d in one forward of `model` on x, from the shapes."""
@@ -104,7 +92,9 @@ def main(argv=None) -> int:
     ap.add_argument("--malloc", choices=("default", "tuned"), default="default")
     ap.add_argument("--no-backward", action="store_true", help="forward only (skip the fwd+bwd and bf16 rows)")
     args = ap.parse_args(argv)
-    tuned = tune_malloc() if args.malloc == "tuned" else False
+    from services.malloc import keep_heap
+
+    tuned = keep_heap() if args.malloc == "tuned" else False
 
     import torch
 
