@@ -6,7 +6,9 @@ on a 1×4×128×32×128 volume — its inference forward in float32, and forward
 bf16 autocast. Printed: each median time, the encoder's arithmetic rate (multiply-adds of its
 convolutions counted from their shapes, ×2 FLOP) as a fraction of the SGEMM rate, the bf16 speed-up, the
 share of the forward spent outside the convolutions (the full-resolution tail: trilinear upsample and L2
-normalisation, from torch.profiler), and the load average. One JSON line, then a summary.
+normalisation, from torch.profiler), that tail alone in channels-first and in channels-last layout (the
+encoder uses the latter without gradients, see core/models/encoder3d.py), and the load average. One JSON
+line, then a summary.
 
     python tests/benchmarks/bench_encoder.py                       # 2 threads, paper grid
     python tests/benchmarks/bench_encoder.py --malloc tuned        # glibc: no mmap'd chunks, no trimming
@@ -82,6 +84,27 @@ def tail_share(encoder, x) -> dict:
             **{k.removeprefix("aten::"): round(v, 3) for k, v in tail.items() if v > 0}}
 
 
+def tail_layouts(out_channels: int, grid, repeats: int) -> dict:
+    """Median ms of the encoder's inference tail (trilinear ×2 upsample of the half-resolution F-channel
+    output, then L2 normalisation) in channels-first layout (the reference) and in channels-last layout
+    (what Encoder3D does without gradients, conversion included)."""
+    import torch
+    import torch.nn.functional as F
+
+    from core.models.normalize import l2_normalize_channels
+
+    half = torch.randn(1, out_channels, *(n // 2 for n in grid))  # 1×F×Z/2×Y/2×X/2
+
+    def tail(layout):
+        def run():
+            x = half.contiguous(memory_format=layout)
+            l2_normalize_channels(F.interpolate(x, size=tuple(grid), mode="trilinear", align_corners=False))
+        return run
+
+    return {"tail_channels_first_ms": round(median_seconds(tail(torch.contiguous_format), repeats) * 1e3, 2),
+            "tail_channels_last_ms": round(median_seconds(tail(torch.channels_last_3d), repeats) * 1e3, 2)}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=2)
@@ -133,7 +156,7 @@ def main(argv=None) -> int:
               "malloc": args.malloc, "malloc_tuned": tuned, "conv_gmac": round(macs / 1e9, 2),
               "sgemm_gflops": round(sgemm_gflops, 1), "forward_s": round(forward_s, 4),
               "encoder_gflops": round(encoder_gflops, 1), "ratio_to_sgemm": round(encoder_gflops / sgemm_gflops, 3),
-              "forward_shares": tail_share(encoder, x)}
+              "forward_shares": tail_share(encoder, x), **tail_layouts(args.out_channels, args.grid, args.repeats)}
     if not args.no_backward:
         encoder.train()
         fp32 = median_seconds(forward_backward(False), args.repeats)
@@ -143,7 +166,8 @@ def main(argv=None) -> int:
     print(json.dumps(result), flush=True)
     print(f"encoder {'×'.join(map(str, args.grid))} width {args.width}: forward {forward_s * 1e3:.0f} ms = "
           f"{encoder_gflops:.0f} GFLOP/s = {encoder_gflops / sgemm_gflops:.2f} × SGEMM ({sgemm_gflops:.0f} GFLOP/s), "
-          f"{args.threads} threads, malloc {args.malloc}"
+          f"{args.threads} threads, malloc {args.malloc}; tail (upsample + normalise) channels-first "
+          f"{result['tail_channels_first_ms']:.1f} ms, channels-last {result['tail_channels_last_ms']:.1f} ms"
           + (f"; fwd+bwd fp32 {result['fwd_bwd_fp32_s']:.3f} s, bf16 {result['fwd_bwd_bf16_s']:.3f} s "
              f"({result['bf16_speedup']:.2f}×)" if not args.no_backward else "")
           + f"; load {result['load_avg']}", flush=True)
