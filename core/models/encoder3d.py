@@ -24,15 +24,12 @@ On real frame pairs the margin stays negative (−0.07 → −0.05), so the bran
 maps but not sufficient. It costs about as much as the rest of the encoder at the small preset's width
 (forward+backward of 8 small-grid volumes, width 16, 1 thread: 0.28 s → 0.54 s).
 
-Layout: without gradients (services, the stream, frozen mappers) the upsample and normalisation run on
-a channels-last copy of the half-resolution output, and the features come back with channels-last
-strides (same shape, same values; `.contiguous()` gives the usual layout). Why: PyTorch's CPU trilinear
-kernel is scalar per output element in channels-first layout and vectorised over channels in
-channels-last, and the channel sum of the normalisation becomes a contiguous reduction. Measured
-(tests/benchmarks/bench_encoder.py, which prints both): the upsample + normalise of the paper grid's
-1×32×64×16×64 output, 2 threads, 36.7 → 15.6 ms; at the small grid (1×16×32×8×32, 1 thread) 4.0 → 1.0 ms.
-With gradients the usual layout stays: there the channels-last normalisation's backward was slower than
-the whole channels-first tail (127 vs 95 ms at the paper grid).
+Tail: on CPU, the upsample and the normalisation are one fused step in channels-last layout
+(core.models.upsample_normalize, its own forward and backward; the features come back with channels-last
+strides: same shape and values, `.contiguous()` gives the usual layout). With the full-resolution branch
+or without normalisation, the two plain ops run, in channels-last only without gradients. Measured
+(tests/benchmarks/bench_encoder.py prints the tail in both layouts): paper grid, 2 threads, forward
+36.7 → 15.6 ms and forward + backward 98.7 → 61.7 ms; small grid, 1 thread, 4.0 → 1.0 ms and 11.3 → 5.9 ms.
 """
 
 from __future__ import annotations
@@ -44,6 +41,7 @@ from torch import nn
 from core.errors import check_shape
 from core.models.normalize import l2_normalize_channels
 from core.models.conv3d import Conv3d, ConvTranspose3d
+from core.models.upsample_normalize import upsample_normalize
 
 
 def _conv_block(conv: nn.Module, channels: int) -> nn.Sequential:
@@ -87,8 +85,9 @@ class Encoder3D(nn.Module):
         u1 = torch.cat([self.up1(x3), x2], dim=1)  # B×4C×Z/4×…
         u2 = torch.cat([self.up2(u1), x1], dim=1)  # B×2C×Z/2×…
         feat = self.out(u2)                        # B×F×Z/2×…
-        if not (torch.is_grad_enabled() and feat.requires_grad):
-            # Inference: the tail in channels-last layout (module docstring, "Layout").
+        if self.normalize and self.full_res == 0 and feat.device.type == "cpu":  # module docstring, "Tail"
+            return upsample_normalize(feat, x0.shape[-3:])[..., :Z, :Y, :X]  # B×F×Z×Y×X (crop the padding)
+        if feat.device.type == "cpu" and not (torch.is_grad_enabled() and feat.requires_grad):
             feat = feat.contiguous(memory_format=torch.channels_last_3d)  # B×F×Z/2×… (strides F last)
         feat = F.interpolate(feat, size=x0.shape[-3:], mode="trilinear", align_corners=False)
         feat = feat[..., :Z, :Y, :X]               # B×F×Z×Y×X (crop the padding)
