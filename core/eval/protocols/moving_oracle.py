@@ -6,6 +6,8 @@ Frames (docs/conventions.md#frames): everything is in ref_t of the pair (t, t+1)
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 
 from core.data.ground_truth import gt_flow, gt_occupancy, points_in_ref
@@ -17,7 +19,8 @@ from core.pipeline.moving import MovingObjectsConfig, boxes_from_flow
 def oracle_boxes(record, t: int, grid, config: MovingObjectsConfig) -> dict:
     """The true stabilised flow and occupancy of pair (t, t+1) through the post-processing of `config`
     (a batch of one): core.pipeline.moving.boxes_from_flow's dict plus `flow` 1×3×Z×Y×X and `observed`
-    1×1×Z×Y×X."""
+    1×1×Z×Y×X. The true flow moves exactly the voxels whose centres lie in an object, so the boxes of
+    their centres are padded one voxel (`moving_voxels="centres"`, whatever `config` says)."""
     true_flow = gt_flow(record, t, grid)[None]                                  # 1×3×Z×Y×X
     xyz, valid = points_in_ref(record, t)                                       # the same ground plane rule
     ground = [fit_ground_plane(xyz[valid].double().numpy()) if config.ground_margin is not None else None]
@@ -25,5 +28,6 @@ def oracle_boxes(record, t: int, grid, config: MovingObjectsConfig) -> dict:
                               torch.as_tensor(record["world_T_ref"][t], dtype=torch.float64)[None])  # 1×V×4×4
     viewpoints = camera_centres(cam_T_ref).float()                              # 1×V×3 camera centres in ref
     observed = gt_occupancy(record, t, grid)[None]                              # 1×1×Z×Y×X
-    out = boxes_from_flow(true_flow, observed, grid, config, ground=ground, viewpoints=viewpoints)
+    out = boxes_from_flow(true_flow, observed, grid, replace(config, moving_voxels="centres"), ground=ground,
+                          viewpoints=viewpoints)
     return {**out, "flow": true_flow, "observed": observed}

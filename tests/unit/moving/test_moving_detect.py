@@ -137,13 +137,61 @@ def scene_with_block(box):
     return block, occupancy
 
 
+def surface_voxels(box, grid, step: float = 0.05):
+    """Slow, obvious: the voxels that hold a point of the box's surface, sampled every `step` metres on
+    each of its six faces (what voxels holding depth points of a whole object are)."""
+    c, s = math.cos(box[6]), math.sin(box[6])
+    R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    half = np.asarray(box[3:6]) / 2
+    marked = np.zeros(grid.shape_zyx, dtype=bool)
+    for axis in range(3):
+        others = [a for a in range(3) if a != axis]
+        u = np.arange(-half[others[0]], half[others[0]] + 1e-9, step)
+        v = np.arange(-half[others[1]], half[others[1]] + 1e-9, step)
+        for side in (-1.0, 1.0):
+            for a in u:
+                for b in v:
+                    local = np.zeros(3)
+                    local[axis], local[others[0]], local[others[1]] = side * half[axis], a, b
+                    x, y, z = R @ local + box[:3]
+                    ix, iy, iz = (int(math.floor((p - lo) / grid.voxel_size))
+                                  for p, lo in zip((x, y, z), grid.bounds_min))
+                    if 0 <= ix < grid.X and 0 <= iy < grid.Y and 0 <= iz < grid.Z:
+                        marked[iz, iy, ix] = True
+    return marked
+
+
+@pytest.mark.parametrize("yaw", [0.0, 0.5, math.pi / 2])
+def test_surface_voxels_take_their_centres_box_unpadded(yaw):
+    """Flow predicted over voxels that hold depth points marks every voxel the surface passes through; their
+    centres scatter ± half a voxel about it, so the unpadded box of centres fits the object and padding
+    by one voxel (right for voxels whose centres lie inside) inflates it."""
+    truth = np.array([-1.2, 0.6, 7.4, 4.0, 1.5, 2.0, yaw])
+    surface = surface_voxels(truth, GRID)
+    flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
+    flow[0][surface] = 1.0
+    ious = {}
+    for meaning in ("surface", "centres"):
+        (found,) = moving_objects_from_flow(flow, surface.astype(np.float32), GRID, threshold=0.5, min_voxels=5,
+                                            dt=0.1, moving_voxels=meaning)
+        ious[meaning] = iou_3d(found["box_ref"][None], truth[None])[0, 0]
+    assert ious["surface"] > 0.6 and ious["surface"] > ious["centres"] + 0.1, ious
+
+
+def test_unknown_moving_voxel_meaning_is_named():
+    flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
+    with pytest.raises(ValueError, match="moving_voxels"):
+        moving_objects_from_flow(flow, None, GRID, threshold=0.5, min_voxels=5, dt=0.1, moving_voxels="inside")
+
+
 def test_one_moving_rotated_block_gives_one_box_with_velocity():
     truth = np.array([-1.2, 0.6, 7.4, 4.0, 1.5, 2.0, 0.6])
     block, occupancy = scene_with_block(truth)
     flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
     flow[0][block], flow[2][block] = 1.2, -0.6                      # voxels per step along x and z
     flow[:, ~occupancy.astype(bool)] = 0.3 * np.random.default_rng(0).standard_normal((3, int((occupancy == 0).sum())))
-    found = moving_objects_from_flow(flow, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1)
+    found = moving_objects_from_flow(flow, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1,
+                                     moving_voxels="centres")
     assert len(found) == 1
     det = found[0]
     assert iou_3d(det["box_ref"][None], truth[None])[0, 0] > 0.6
@@ -195,10 +243,11 @@ def test_size_prior_splits_blocks_merged_end_to_end_and_completes_a_partial_one(
     flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
     flow[2][block_a | block_b] = 1.0
     occupancy = np.maximum(occupancy, (block_a | block_b).astype(occupancy.dtype))
-    (merged,) = moving_objects_from_flow(flow, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1)
+    (merged,) = moving_objects_from_flow(flow, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1,
+                                         moving_voxels="centres")
     assert merged["box_ref"][3] > 7.5                       # one 8 m box
     split = moving_objects_from_flow(flow, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1, size_prior=prior,
-                                     viewpoints=np.array([[0.0, -3.0, -4.0]]))
+                                     moving_voxels="centres", viewpoints=np.array([[0.0, -3.0, -4.0]]))
     assert len(split) == 2
     ious = iou_3d(np.stack([d["box_ref"] for d in split]), np.stack([a, b]))
     assert ious.max(axis=0).min() > 0.6                      # each block matched by a box
@@ -209,8 +258,9 @@ def test_size_prior_splits_blocks_merged_end_to_end_and_completes_a_partial_one(
     near[centres_z >= 6.0] = False
     flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
     flow[2][near] = 1.0
-    (visible,) = moving_objects_from_flow(flow, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1)
+    (visible,) = moving_objects_from_flow(flow, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1,
+                                          moving_voxels="centres")
     (whole,) = moving_objects_from_flow(flow, occupancy, GRID, threshold=0.5, min_voxels=5, dt=0.1, size_prior=prior,
-                                        viewpoints=np.array([[0.0, -3.0, -4.0]]))
+                                        moving_voxels="centres", viewpoints=np.array([[0.0, -3.0, -4.0]]))
     assert visible["box_ref"][3] < 2.5 and whole["box_ref"][3] == pytest.approx(4.0)
     assert iou_3d(whole["box_ref"][None], a[None])[0, 0] > 0.6 > iou_3d(visible["box_ref"][None], a[None])[0, 0]

@@ -112,7 +112,8 @@ def test_ground_truth_flow_finds_the_moving_car(one_car_record):
     rec = one_car_record
     assert rec["box_moving"][rec["box_valid"][0]].sum() == 1
     flow = gt_flow(rec, 0, GRID)[None]                                       # 1×3×Z×Y×X
-    out = boxes_from_flow(flow, None, GRID, MovingObjectsConfig())
+    # The true flow moves the voxels whose centres lie in the car: boxes of their centres pad one voxel.
+    out = boxes_from_flow(flow, None, GRID, MovingObjectsConfig(moving_voxels="centres"))
     assert int(out["valid"].sum()) == 1
     k = int(np.flatnonzero(rec["box_valid"][0] & rec["box_moving"])[0])
     ref_T_world = se3.invert(torch.as_tensor(rec["world_T_ref"][0:1], dtype=torch.float64))
