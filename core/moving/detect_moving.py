@@ -36,7 +36,7 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
                              dt: float, occupied_above: float = 0.5, shell_margin: float | None = None,
                              nms_iou: float = 0.3, connectivity: int = 26, can_move=None,
                              size_prior: SizePrior | None = None, viewpoints=None, ground=None,
-                             moving_voxels: str = "surface") -> list[dict]:
+                             moving_voxels: str = "surface", seen_by=None) -> list[dict]:
     """Scored oriented boxes of the independently moving objects.
 
     flow: 3×Z×Y×X voxels (x, y, z), stabilised (background ≈ 0). occupancy: Z×Y×X in [0, 1] or None
@@ -50,7 +50,10 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
     away from the nearest of `viewpoints` (V×3 camera centres in ref, metres; None: symmetrically) and
     down to the `ground` plane (4,) (core.moving.ground; None: the visible vertical extent).
     moving_voxels: "surface" or "centres", what a moving voxel means (MOVING_VOXEL_PAD): the boxes of
-    voxel centres are padded by 0 or by one voxel.
+    voxel centres are padded by 0 or by one voxel. seen_by: V×Z×Y×X bool or None — which of the
+    `viewpoints` saw each voxel (held one of its depth points); an amodal box then grows away from the
+    cameras that saw its component (their centres averaged, weighted by how many of its voxels each saw),
+    not from the nearest camera, which on a rig around the scene is often one that saw other faces or none.
 
     Returns a list, best score first, of dicts: `box_ref` (7,) canonical box in ref, `score` (float,
     center-surround in [−1, 1]), `velocity_ref` (3,) mean velocity of the component's voxels in
@@ -83,6 +86,12 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
     margin = 2 * grid.voxel_size if shell_margin is None else shell_margin
     found = []
     views = None if viewpoints is None else to_numpy(viewpoints).astype(np.float64).reshape(-1, 3)
+    seen = None
+    if seen_by is not None:
+        seen = to_numpy(seen_by).astype(bool)
+        if views is None or seen.shape != (len(views),) + f.shape[1:]:
+            raise ShapeError(f"seen_by: expected V×{grid.Z}×{grid.Y}×{grid.X} with V the viewpoints' count "
+                             f"({None if views is None else len(views)}), got {'×'.join(map(str, seen.shape))}")
     for component in component_indices(labels, count):
         if len(component) < min_voxels:
             continue
@@ -95,7 +104,7 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
             score_box = fit_box_to_voxels(zyx, grid)  # 7
             score = center_surround_score(moving, score_box, grid, weight=occupied, shell_margin=margin)
             box = fit_box_to_points(voxel_indices_to_ref(zyx, grid), pad=pad) if size_prior is None else amodal_box(
-                voxel_indices_to_ref(zyx, grid), viewpoint=_nearest(views, zyx, grid), prior=size_prior,
+                voxel_indices_to_ref(zyx, grid), viewpoint=_viewpoint(views, seen, zyx, grid), prior=size_prior,
                 voxel=grid.voxel_size, pad=pad,
                 ground_y=None if ground is None else ground_y_at(ground, score_box[0], score_box[2]))
             mean_flow = f[:, zyx[:, 0], zyx[:, 1], zyx[:, 2]].mean(axis=1)  # 3 voxels, (x, y, z)
@@ -113,10 +122,17 @@ def _pieces(zyx: np.ndarray, grid: GridConfig, prior: SizePrior, pad: float) -> 
     return [zyx[index] for index in pieces]
 
 
-def _nearest(views: np.ndarray | None, zyx: np.ndarray, grid: GridConfig) -> np.ndarray | None:
-    """The camera centre (3,) nearest to the voxels' centroid, or None without cameras."""
+def _viewpoint(views: np.ndarray | None, seen: np.ndarray | None, zyx: np.ndarray,
+               grid: GridConfig) -> np.ndarray | None:
+    """Where the component with voxels N×3 (z, y, x) was seen from (3,): the centres of the cameras that
+    saw its voxels, weighted by how many each saw (seen: V×Z×Y×X); without that record, or when no camera
+    saw them, the camera nearest to the voxels' centroid; None without cameras."""
     if views is None or len(views) == 0:
         return None
+    if seen is not None:
+        counts = seen[:, zyx[:, 0], zyx[:, 1], zyx[:, 2]].sum(axis=1).astype(np.float64)  # V
+        if counts.sum() > 0:
+            return counts @ views / counts.sum()
     centroid = voxel_indices_to_ref(zyx, grid).mean(0)
     return views[int(np.argmin(((views - centroid) ** 2).sum(1)))]
 

@@ -67,7 +67,7 @@ def moving_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0:
     watch = Stopwatch(timings)
     found = boxes_from_flow(out["flow"], box_occupancy(cfg, enc0.occupancy, enc0.evidence),
                             bundle.modules["mapper"].grid, cfg, ground=enc0.evidence.ground,
-                            viewpoints=enc0.evidence.viewpoints, dt=dt)
+                            viewpoints=enc0.evidence.viewpoints, seen_by=enc0.evidence.seen_by, dt=dt)
     watch.lap("boxes")
     keep = ("flow", "ref0_T_ref1", "cam0_T_cam1", "current")
     return {**found, **{k: out[k] for k in keep if k in out}}

@@ -78,12 +78,15 @@ class MovingObjectsConfig:
 @dataclass
 class FrameEvidence:
     """What frame 0's depth alone says about the scene, in ref0: `observed` B×1×Z×Y×X in {0, 1} (voxels
-    holding a depth point of any view), `ground` (one plane (4,) or None per item; core.moving.ground) and
-    `viewpoints` B×V×3 (the cameras' centres in ref0, metres: amodal boxes grow away from them)."""
+    holding a depth point of any view), `ground` (one plane (4,) or None per item; core.moving.ground),
+    `viewpoints` B×V×3 (the cameras' centres in ref0, metres: amodal boxes grow away from them) and
+    `seen_by` B×V×Z×Y×X bool (the voxels holding a depth point of each view: a box grows away from the
+    cameras that saw its component)."""
 
     observed: torch.Tensor
     ground: list
     viewpoints: torch.Tensor | None = None
+    seen_by: torch.Tensor | None = None
 
 
 def frame_evidence(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor, grid: GridConfig, *,
@@ -93,21 +96,24 @@ def frame_evidence(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torc
     xyz_cam, valid = depth_to_points(depth.reshape(B * V, H, W), pix_T_cam.reshape(B * V, 4, 4))  # BV×N×3, BV×N
     xyz_ref = se3.apply(se3.invert(cam_T_ref.reshape(B * V, 4, 4)), xyz_cam)  # BV×N×3
     xyz_ref, valid = xyz_ref.reshape(B, V * H * W, 3), valid.reshape(B, V * H * W)  # B×VN×3, B×VN
-    observed = voxelize(xyz_ref, grid, valid)  # B×1×Z×Y×X
+    seen_by = voxelize(xyz_ref.reshape(B * V, H * W, 3), grid, valid.reshape(B * V, H * W))  # BV×1×Z×Y×X
+    seen_by = seen_by.reshape(B, V, *grid.shape_zyx) > 0                    # B×V×Z×Y×X
+    observed = seen_by.any(dim=1, keepdim=True).to(xyz_ref.dtype)          # B×1×Z×Y×X
     planes = [fit_ground_plane(xyz_ref[b][valid[b]].double().cpu().numpy()) if fit_ground else None
               for b in range(B)]
     viewpoints = camera_centres(cam_T_ref)  # B×V×3
-    return FrameEvidence(observed=observed, ground=planes, viewpoints=viewpoints)
+    return FrameEvidence(observed=observed, ground=planes, viewpoints=viewpoints, seen_by=seen_by)
 
 
 def boxes_from_flow(flow: torch.Tensor, occupancy: torch.Tensor | None, grid: GridConfig,
                     config: MovingObjectsConfig | None = None, *, ground: list | None = None,
-                    viewpoints: torch.Tensor | None = None,
+                    viewpoints: torch.Tensor | None = None, seen_by: torch.Tensor | None = None,
                     dt: float | Sequence[float] | None = None) -> dict[str, torch.Tensor]:
     """The post-processing alone, per batch item: flow B×3×Z×Y×X (voxels, stabilised), occupancy
     B×1×Z×Y×X probabilities or None (every voxel counts as occupied), ground: one plane or None per
     item (voxels within `config.ground_margin` voxels of it or below do not move), or None; viewpoints:
-    B×V×3 camera centres in ref0 (amodal boxes grow away from the nearest), or None; dt: seconds from t0
+    B×V×3 camera centres in ref0 (amodal boxes grow away from the cameras that saw them: `seen_by`
+    B×V×Z×Y×X bool, or None for the nearest camera), or None; dt: seconds from t0
     to t1, one per item or one for all (None: `config.dt`). The interval scales the velocities and the
     speed threshold, so pairs of a batch may span different intervals.
 
@@ -126,7 +132,7 @@ def boxes_from_flow(flow: torch.Tensor, occupancy: torch.Tensor | None, grid: Gr
             shell_margin=item.shell_margin, nms_iou=item.nms_iou, connectivity=item.connectivity,
             can_move=above_ground(grid, planes[b], margin_voxels=item.ground_margin or 0.0),
             size_prior=item.size_prior, viewpoints=None if viewpoints is None else viewpoints[b], ground=planes[b],
-            moving_voxels=item.moving_voxels))
+            moving_voxels=item.moving_voxels, seen_by=None if seen_by is None else seen_by[b]))
     return detections_to_tensors(per_example, device=flow.device)
 
 

@@ -27,7 +27,9 @@ def oracle_boxes(record, t: int, grid, config: MovingObjectsConfig) -> dict:
     cam_T_ref = rig_cam_T_ref(torch.as_tensor(record["world_T_cam"][t], dtype=torch.float64)[None],
                               torch.as_tensor(record["world_T_ref"][t], dtype=torch.float64)[None])  # 1×V×4×4
     viewpoints = camera_centres(cam_T_ref).float()                              # 1×V×3 camera centres in ref
-    observed = gt_occupancy(record, t, grid)[None]                              # 1×1×Z×Y×X
+    V = viewpoints.shape[1]
+    seen_by = torch.stack([gt_occupancy(record, t, grid, views=[v])[0] > 0 for v in range(V)])[None]  # 1×V×Z×Y×X
+    observed = seen_by.any(dim=1, keepdim=True).float()                        # 1×1×Z×Y×X
     out = boxes_from_flow(true_flow, observed, grid, replace(config, moving_voxels="centres"), ground=ground,
-                          viewpoints=viewpoints)
+                          viewpoints=viewpoints, seen_by=seen_by)
     return {**out, "flow": true_flow, "observed": observed}
