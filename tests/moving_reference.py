@@ -50,7 +50,8 @@ def reference_moving_objects(bundle, pair: dict, *, stabilize: str, dt: float,
         flow = flow * (bundle.modules["occupancy"].probabilities(f0) >= cfg.occupied_above).to(flow.dtype)
     evidence = frame_evidence(pair["depth0"], pair["pix_T_cam0"], cam0_T_ref0, grid)
     assert cfg.occupancy == "observed"  # the only box occupancy the services use
-    out = boxes_from_flow(flow, evidence.observed, grid, cfg, ground=evidence.ground, viewpoints=evidence.viewpoints)
+    out = boxes_from_flow(flow, evidence.observed, grid, cfg, ground=evidence.ground, viewpoints=evidence.viewpoints,
+                          seen_by=evidence.seen_by)
     out.update(flow=flow, ref0_T_ref1=ref0_T_ref1)
     if "cam0_T_cam1" in ego:
         out["cam0_T_cam1"] = ego["cam0_T_cam1"]

@@ -264,3 +264,28 @@ def test_size_prior_splits_blocks_merged_end_to_end_and_completes_a_partial_one(
                                         moving_voxels="centres", viewpoints=np.array([[0.0, -3.0, -4.0]]))
     assert visible["box_ref"][3] < 2.5 and whole["box_ref"][3] == pytest.approx(4.0)
     assert iou_3d(whole["box_ref"][None], a[None])[0, 0] > 0.6 > iou_3d(visible["box_ref"][None], a[None])[0, 0]
+
+
+def test_box_grows_away_from_the_camera_that_saw_the_component_not_the_nearest_one():
+    """The near half (z < 6) of a 4 m block was seen by a camera at z = −4; a camera at z = 12 is nearer to
+    those voxels but saw none of them. With `seen_by` the box grows to +z (away from the camera that saw
+    it) and matches the block; by the nearest camera alone it would grow to −z."""
+    from core.moving.amodal import SizePrior
+
+    prior = SizePrior.from_size(4.0, 2.0, 1.5)
+    truth = np.array([0.0, 0.6, 6.0, 4.0, 1.5, 2.0, math.pi / 2])
+    block, occupancy = scene_with_block(truth)
+    near = block.copy()
+    centres_z = (np.arange(GRID.Z) + 0.5) * GRID.voxel_size + GRID.zmin
+    near[centres_z >= 6.0] = False
+    flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
+    flow[2][near] = 1.0
+    views = np.array([[0.0, -3.0, -4.0], [0.0, -3.0, 12.0]])
+    seen_by = np.stack([near, np.zeros_like(near)])                  # V×Z×Y×X: only camera 0 saw it
+    kwargs = dict(threshold=0.5, min_voxels=5, dt=0.1, size_prior=prior, moving_voxels="centres", viewpoints=views)
+    (nearest,) = moving_objects_from_flow(flow, occupancy, GRID, **kwargs)
+    (seen,) = moving_objects_from_flow(flow, occupancy, GRID, seen_by=seen_by, **kwargs)
+    assert seen["box_ref"][2] == pytest.approx(6.0, abs=0.3) and nearest["box_ref"][2] < 5.0
+    assert iou_3d(seen["box_ref"][None], truth[None])[0, 0] > 0.6 > iou_3d(nearest["box_ref"][None], truth[None])[0, 0]
+    with pytest.raises(ShapeError, match="seen_by"):
+        moving_objects_from_flow(flow, occupancy, GRID, seen_by=seen_by[:1], **kwargs)
