@@ -18,11 +18,13 @@ visible extent is the object's, across it only the surface's thickness (one voxe
    i.e. lie inside the object, so their centres span about a voxel less than it (pad = one voxel);
    voxels a surface merely passes through scatter about it by ± half a voxel (pad = 0: padding would
    inflate a voxelised 4.4 × 1.6 × 1.8 m car at 0.25 m voxels to 3D IoU 0.57 with itself, against 0.77).
-3. Which rectangle side is the object's length: a side whose voxel centres span at least one voxel was
-   seen whole (a face seen edge-on spans none: it is one voxel thick) and should match its prior
-   dimension in log ratio; a side not seen whole may fall short of it. The assignment that fits the
-   prior better wins; a tie gives the length to the side along the line of sight, the one occlusion
-   cuts short.
+3. Which rectangle side is the object's length: when the component's flow is coherent (its voxels move
+   as one, along one bird's-eye direction: the caller's `heading`), the side closer to that direction —
+   objects move along their length, and a strip of one face says nothing about which face it is.
+   Otherwise: a side whose voxel centres span at least one voxel was seen whole (a face seen edge-on
+   spans none: it is one voxel thick) and should match its prior dimension in log ratio; a side not seen
+   whole may fall short of it. The assignment that fits the prior better wins; a tie gives the length to
+   the side along the line of sight, the one occlusion cuts short.
 4. Each bird's-eye side seen clearly short of the prior's (below GROW_BELOW of it) grows to the prior,
    away from the camera along its axis (the hidden part of an object lies behind its visible faces); a
    side the camera looks straight across grows on both ends. Vertically, objects stand on the ground:
@@ -131,10 +133,11 @@ def split_oversized(xyz: np.ndarray, prior: SizePrior, *, voxel: float, pad: flo
 
 
 def amodal_box(xyz: np.ndarray, *, viewpoint: np.ndarray | None, prior: SizePrior, voxel: float,
-               pad: float, ground_y: float | None = None) -> np.ndarray:
+               pad: float, ground_y: float | None = None, heading: np.ndarray | None = None) -> np.ndarray:
     """Canonical box (7,) of the whole object whose visible part is the voxel centres N×3 (`voxel`: their
     size in metres; `pad`: rule 2), seen from `viewpoint` (3,) in the same frame (None: grow symmetrically),
-    standing on the ground at height `ground_y` (metres, y down; None: the visible vertical extent)."""
+    standing on the ground at height `ground_y` (metres, y down; None: the visible vertical extent),
+    moving along `heading` (2,) in (x, z) when its motion is known to be coherent (None: rule 3's fit)."""
     visible = visible_box(xyz, voxel=voxel, pad=pad)
     centre = visible[:3].copy()
     long_axis = np.array([math.cos(visible[6]), -math.sin(visible[6])])   # object x in (x, z)
@@ -143,7 +146,11 @@ def amodal_box(xyz: np.ndarray, *, viewpoint: np.ndarray | None, prior: SizePrio
     whole = [s - pad >= WHOLE_SIDE_VOXELS * voxel - 1e-9 for s in (seen_long, seen_short)]
     sides = [(long_axis, seen_long), (short_axis, seen_short)]
     to_object = None if viewpoint is None else centre[[0, 2]] - np.asarray(viewpoint, dtype=np.float64)[[0, 2]]
-    length_side, width_side = _assign_sides(sides, whole, prior, to_object)
+    if heading is not None and np.any(heading):
+        first = 0 if abs(float(long_axis @ heading)) >= abs(float(short_axis @ heading)) else 1
+        length_side, width_side = sides[first], sides[1 - first]
+    else:
+        length_side, width_side = _assign_sides(sides, whole, prior, to_object)
     extents = {}
     for name, (axis, seen), target in (("length", length_side, prior.length), ("width", width_side, prior.width)):
         grow = _growth(seen, target)

@@ -30,6 +30,14 @@ from core.moving.saliency import center_surround_score
 # 0 (on 32 fresh records 0.111 / 0.079 → 0.348 / 0.403); the true flow's 0.306 / 0.569 with one voxel and
 # 0.373 / 0.519 with 0 (fresh: 0.425 / 0.180 → 0.216 / 0.129).
 MOVING_VOXEL_PAD = {"surface": 0.0, "centres": 1.0}
+# A component's bird's-eye flow is coherent, and gives the amodal box its heading (core.moving.amodal,
+# rule 3), when the length of its voxels' mean flow is at least this share of their mean flow length
+# (1: all parallel). Measured on 32 held-out small-preset pairs: the true flow's components are all
+# coherent, its direction within 20° of the object's heading for every one, while their visible boxes'
+# long axes are for 78 % (70 % of the one-voxel-thin strips); a 300-step model's flow is within 20° for
+# 90 % of its components at coherence ≥ 0.95 and 44–63 % below 0.9, where its visible boxes' long axes
+# (84–93 %) are the better guide.
+HEADING_COHERENCE = 0.95
 
 
 def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: float, min_voxels: int,
@@ -103,17 +111,29 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
             # the object.
             score_box = fit_box_to_voxels(zyx, grid)  # 7
             score = center_surround_score(moving, score_box, grid, weight=occupied, shell_margin=margin)
+            voxel_flow = f[:, zyx[:, 0], zyx[:, 1], zyx[:, 2]]  # 3×N voxels, (x, y, z)
+            mean_flow = voxel_flow.mean(axis=1)                # 3
             box = fit_box_to_points(voxel_indices_to_ref(zyx, grid), pad=pad) if size_prior is None else amodal_box(
                 voxel_indices_to_ref(zyx, grid), viewpoint=_viewpoint(views, seen, zyx, grid), prior=size_prior,
-                voxel=grid.voxel_size, pad=pad,
+                voxel=grid.voxel_size, pad=pad, heading=coherent_heading(voxel_flow),
                 ground_y=None if ground is None else ground_y_at(ground, score_box[0], score_box[2]))
-            mean_flow = f[:, zyx[:, 0], zyx[:, 1], zyx[:, 2]].mean(axis=1)  # 3 voxels, (x, y, z)
             found.append(dict(box_ref=box, score=score, velocity_ref=mean_flow * grid.voxel_size / dt,
                               num_voxels=int(len(zyx))))
     if not found:
         return []
     keep = nms_bev(np.stack([d["box_ref"] for d in found]), np.array([d["score"] for d in found]), nms_iou)
     return [found[i] for i in keep]
+
+
+def coherent_heading(voxel_flow: np.ndarray) -> np.ndarray | None:
+    """voxel_flow: 3×N flows (x, y, z) of one component -> its bird's-eye direction (2,) in (x, z) when the
+    voxels move as one (HEADING_COHERENCE), else None."""
+    bev = voxel_flow[[0, 2]]                                  # 2×N
+    mean = bev.mean(axis=1)                                   # 2
+    spread = float(np.linalg.norm(bev, axis=0).mean())
+    if spread == 0 or np.linalg.norm(mean) < HEADING_COHERENCE * spread:
+        return None
+    return mean / np.linalg.norm(mean)
 
 
 def _pieces(zyx: np.ndarray, grid: GridConfig, prior: SizePrior, pad: float) -> list[np.ndarray]:

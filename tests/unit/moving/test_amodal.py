@@ -167,3 +167,45 @@ def test_size_prior_rejects_nonsense():
         SizePrior(length=2.0, width=1.0, height=1.0, max_length=1.0, max_width=1.0, max_height=1.0)
     with pytest.raises(Exception):
         estimate_size_prior(np.zeros((0, 3)))
+
+
+def test_a_strip_of_a_long_side_takes_its_heading_from_coherent_flow():
+    """Part of a car's long side (1.5 m of it, along z) is seen through a gap: by shape alone it fits the
+    prior's width better (a whole end face), so the length goes across it; moving along z, the heading
+    puts the length along the strip, and the box matches the car."""
+    truth = np.array([0.0, -0.8, 10.0, 4.0, 1.6, 1.8, math.pi / 2])        # length along z, side at x = −0.9
+    zs = np.arange(9.0, 10.5, VOXEL) + VOXEL / 2
+    ys = np.arange(-1.5, 0.0, VOXEL) + VOXEL / 2
+    pts = np.array([[-0.9 - VOXEL / 2, y, z] for z in zs for y in ys])      # the side's voxel centres
+    prior = SizePrior.from_size(4.0, 1.8, 1.6)
+    camera = np.array([-10.0, -0.8, 9.75])                                   # beside the car, looking along +x
+    by_shape = amodal_box(pts, viewpoint=camera, prior=prior, voxel=VOXEL, pad=0.0, ground_y=0.0)
+    by_heading = amodal_box(pts, viewpoint=camera, prior=prior, voxel=VOXEL, pad=0.0, ground_y=0.0,
+                            heading=np.array([0.0, 1.0]))
+    assert abs(by_shape[6]) < 1e-9                                           # length across the strip
+    assert abs(abs(by_heading[6]) - math.pi / 2) < 1e-9                      # length along z
+    assert iou_3d(by_heading[None], truth[None])[0, 0] > 0.5 > iou_3d(by_shape[None], truth[None])[0, 0]
+
+
+def test_coherent_heading_against_the_resultant_written_out():
+    from core.moving.detect_moving import HEADING_COHERENCE, coherent_heading
+
+    rng = np.random.default_rng(0)
+    coherent = 0
+    for trial in range(50):
+        flow = rng.normal(size=(3, 12)) + rng.uniform(0, 3) * np.array([[1.0], [0.0], [0.5]])  # 3×N
+        # slow, obvious: the resultant length over the mean length of the bird's-eye vectors
+        vectors = [np.array([flow[0, i], flow[2, i]]) for i in range(flow.shape[1])]
+        resultant = np.linalg.norm(sum(vectors)) / len(vectors)
+        mean_length = sum(np.linalg.norm(v) for v in vectors) / len(vectors)
+        heading = coherent_heading(flow)
+        if resultant >= HEADING_COHERENCE * mean_length:
+            expected = sum(vectors) / np.linalg.norm(sum(vectors))
+            assert heading is not None and np.allclose(heading, expected)
+            coherent += 1
+        else:
+            assert heading is None
+    assert 0 < coherent < 50                                                 # both branches were met
+    assert coherent_heading(np.zeros((3, 4))) is None
+    one_way = np.tile(np.array([[2.0], [5.0], [-2.0]]), (1, 6))               # all parallel, any vertical part
+    assert np.allclose(coherent_heading(one_way), np.array([1.0, -1.0]) / math.sqrt(2))
