@@ -24,7 +24,8 @@ from core.geometry.grid import GridConfig
 from core.geometry.poses import camera_centres
 from core.geometry.voxelize import voxelize
 from core.moving.amodal import SizePrior
-from core.moving.detect_moving import MOVING_VOXEL_PAD, detections_to_tensors, moving_objects_from_flow
+from core.moving.detect_moving import (DEFAULT_HYSTERESIS, MOVING_VOXEL_PAD, detections_to_tensors,
+                                       moving_objects_from_flow)
 from core.moving.ground import DEFAULT_MARGIN_VOXELS, above_ground, fit_ground_plane
 
 BOXES_FRAME = "ref0"
@@ -60,11 +61,16 @@ class MovingObjectsConfig:
     # model predicts over the voxels that hold depth points (boxes of their centres, unpadded), "centres"
     # for the true flow, which moves exactly the voxels whose centres lie in an object (padded one voxel).
     moving_voxels: str = "surface"
+    # Voxels above this share of the speed threshold move when connected to one above it
+    # (core.moving.detect_moving.DEFAULT_HYSTERESIS); 1: the threshold alone.
+    hysteresis: float = DEFAULT_HYSTERESIS
 
     def __post_init__(self) -> None:
         if self.dt <= 0 or self.min_speed < 0 or self.min_voxels < 1:
             raise ValueError(f"need dt > 0, min_speed ≥ 0, min_voxels ≥ 1; got {self.dt}, {self.min_speed}, "
                              f"{self.min_voxels}")
+        if not 0 < self.hysteresis <= 1:
+            raise ValueError(f"hysteresis must be in (0, 1], got {self.hysteresis}")
         if self.moving_voxels not in MOVING_VOXEL_PAD:
             raise ValueError(f"moving_voxels must be one of {sorted(MOVING_VOXEL_PAD)}, got {self.moving_voxels!r}")
         if self.occupancy not in OCCUPANCY_SOURCES:
@@ -132,7 +138,8 @@ def boxes_from_flow(flow: torch.Tensor, occupancy: torch.Tensor | None, grid: Gr
             shell_margin=item.shell_margin, nms_iou=item.nms_iou, connectivity=item.connectivity,
             can_move=above_ground(grid, planes[b], margin_voxels=item.ground_margin or 0.0),
             size_prior=item.size_prior, viewpoints=None if viewpoints is None else viewpoints[b], ground=planes[b],
-            moving_voxels=item.moving_voxels, seen_by=None if seen_by is None else seen_by[b]))
+            moving_voxels=item.moving_voxels, seen_by=None if seen_by is None else seen_by[b],
+            hysteresis=item.hysteresis))
     return detections_to_tensors(per_example, device=flow.device)
 
 

@@ -38,6 +38,7 @@ from core.models.egomotion import EgomotionNet, default_scales, pose_loss
 from core.models.egomotion_inputs import egomotion_input_volume
 from core.presets import Preset
 from core.tasks.poses import cam_T_ref, ref0_T_ref1
+from core.tasks.view_subset import random_view_subset
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,9 @@ class EgomotionTaskConfig:
     radius: tuple[int, int, int] = (2, 1, 2)  # cross-correlation search radius (x, y, z) voxels per scale
     rotation_weight: float = 10.0
     seed: int | None = None
+    # Each step trains on a random subset of at least this many of the record's views (core.tasks.view_subset);
+    # None: every view.
+    min_views: int | None = 1
     input_occupancy: str = "splat"  # continuous occupancy (core.models.input_volume); "binary": before
     refine: bool = True             # the sub-voxel Gauss-Newton stage (core.models.egomotion_refine)
     refine_learned_channels: int = 0  # learned feature channels of that stage (measured: no gain, 4 cost ~60 ms)
@@ -99,6 +103,8 @@ class EgomotionTask(nn.Module):
         return {"egomotion": self.egomotion}
 
     def forward(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        if self.cfg.min_views is not None:
+            batch = random_view_subset(batch, min_views=self.cfg.min_views, generator=self._generator)
         rgb, depth, pix = batch["rgb"], batch["depth"], batch["pix_T_cam"]  # B×T×V×3×H×W, B×T×V×H×W, B×V×4×4
         B, T = rgb.shape[:2]
         t0 = int(torch.randint(max(T - 1, 1), (1,), generator=self._generator))

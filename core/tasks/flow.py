@@ -41,6 +41,7 @@ from core.models.egomotion_inputs import fused_input_volume
 from core.models.latent_map import Mapper
 from core.presets import Preset
 from core.tasks.poses import cam_T_ref
+from core.tasks.view_subset import random_view_subset
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,9 @@ class FlowTaskConfig:
     unit_cost: bool = True          # Flow3D.unit_cost: cosine cost volume
     soft_argmax: bool = False       # Flow3D.soft_argmax: correlator prior at every decoder level too
     seed: int | None = None
+    # Each step trains on a random subset of at least this many of the record's views (core.tasks.view_subset);
+    # None: every view.
+    min_views: int | None = 1
 
 
 def smoothness(flow: torch.Tensor) -> torch.Tensor:
@@ -156,6 +160,8 @@ class FlowTask(nn.Module):
         if T < 2:
             raise ShapeError(f"flow training needs records with at least 2 time steps, got T={T}")
         t = int(torch.randint(T - 1, (1,), generator=self._generator))
+        if self.cfg.min_views is not None:
+            batch = random_view_subset(batch, min_views=self.cfg.min_views, generator=self._generator)
         f0, f1, occupied = self.flow_inputs(batch, t)
         g = self.cfg.grid
         if float(torch.rand((), generator=self._generator)) < self.cfg.object_fraction:

@@ -53,6 +53,14 @@ def non_negative_float(text: str) -> float:
     return value
 
 
+def unit_fraction(text: str) -> float:
+    """A number in (0, 1]."""
+    value = _number(text, float, "a number in (0, 1]")
+    if not 0 < value <= 1:
+        raise argparse.ArgumentTypeError(f"must be in (0, 1], got {text}")
+    return value
+
+
 def port(text: str) -> int:
     """A TCP port, 0..65535 (0: the OS picks a free one)."""
     value = _number(text, int, "a port number (0-65535)")

@@ -131,7 +131,8 @@ def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
     bridge, bridge_out, bridge_err = start(
         ["bridge", "--bundle", str(bundle), "--listen", endpoint, "--bridge-id", f"bench-{preset}",
          "--threads", str(args.threads), "--device", "cpu", "--status-every", "0",
-         *([] if args.lookahead else ["--no-lookahead"])], work, f"bridge_{preset}")
+         *([] if args.lookahead else ["--no-lookahead"]),
+         *([] if args.size_prior is None else ["--size-prior", *map(str, args.size_prior)])], work, f"bridge_{preset}")
     listener = camera = None
     try:
         wait_for(lambda: "ready" in bridge_err.read_text() or bridge.poll() is not None, 300, "the bridge")
@@ -194,6 +195,8 @@ def main(argv=None) -> int:
     parser.add_argument("--no-lookahead", dest="lookahead", action="store_false",
                         help="run the bridge without its look-ahead thread (for comparison)")
     parser.add_argument("--drain-s", type=float, default=5.0, help="wait after the last frame before stopping")
+    parser.add_argument("--size-prior", type=float, nargs=3, default=None, metavar=("L", "W", "H"),
+                        help="the bridge's --size-prior (amodal boxes; default: the bridge's default)")
     for name in ("tiny", "small", "paper"):
         parser.add_argument(f"--bundle-{name}", default=None, help=f"bundle for the {name} preset (default: fresh)")
     args = parser.parse_args(argv)

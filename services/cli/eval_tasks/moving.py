@@ -17,9 +17,10 @@ from core.eval.protocols.moving import (CAMERAS, IOUS, MODEL, NEEDS, ORACLE_3D, 
                                         evaluate)
 from core.eval.thresholds import threshold_key
 from core.moving.amodal import SizePrior
+from core.moving.detect_moving import DEFAULT_HYSTERESIS
 from core.moving.ground import DEFAULT_MARGIN_VOXELS
 from core.pipeline.moving import DEFAULT_DT, OCCUPANCY_SOURCES, MovingObjectsConfig
-from services.cli.argtypes import non_negative_float, positive_float, positive_int
+from services.cli.argtypes import non_negative_float, positive_float, positive_int, unit_fraction
 from services.cli.eval import (add_eval_parser, add_rerun_option, check_rerun_option, iter_records,
                                load_bundle_for_eval, open_rerun_option, print_rerun_option)
 from services.cli.eval_tasks.boxes_report import bev_boxes_figure, pr_figure
@@ -33,6 +34,9 @@ def register(kinds) -> None:
     parser.add_argument("--dt", type=positive_float, default=DEFAULT_DT, help="seconds between steps (default %(default)s)")
     parser.add_argument("--min-speed", type=non_negative_float, default=1.0, help="m/s above which a voxel moves (3D)")
     parser.add_argument("--min-voxels", type=positive_int, default=3, help="smallest 3D component kept")
+    parser.add_argument("--hysteresis", type=unit_fraction, default=DEFAULT_HYSTERESIS,
+                        help="voxels above this share of the speed threshold move when connected to one above it "
+                             "(1: the threshold alone; default %(default)s)")
     parser.add_argument("--occupancy", choices=OCCUPANCY_SOURCES, default="observed",
                         help="voxels that can move: observed by frame 0's depth (default) or predicted by the "
                              "occupancy head (the paper's rule)")
@@ -76,7 +80,8 @@ def build_report(bundle, records, config: MovingEvalConfig = MovingEvalConfig(),
                     settings={"max_records": max_records, "pairs_static_camera": result["pairs"]["static"],
                               "pairs_moving_camera": result["pairs"]["moving"], "device": str(device),
                               "stabilised_with": result["stabilised_with"], "dt_s": objects.dt,
-                              "min_speed_m_s": objects.min_speed, "min_voxels": objects.min_voxels,
+                              "min_speed_m_s": objects.min_speed, "hysteresis": objects.hysteresis,
+                              "min_voxels": objects.min_voxels,
                               "box_occupancy": objects.occupancy, "ground_margin_voxels": objects.ground_margin,
                               "flow_threshold_px": config.threshold_px, "min_pixels": config.min_pixels,
                               "gt_min_points": config.min_points,
@@ -133,6 +138,7 @@ def run(args) -> int:
     device = resolve_device(args.device)
     bundle = load_bundle_for_eval(args.bundle, device, NEEDS, data_dir=args.data)
     objects = MovingObjectsConfig(dt=args.dt, min_speed=args.min_speed, min_voxels=args.min_voxels,
+                                  hysteresis=args.hysteresis,
                                   occupancy=args.occupancy,
                                   ground_margin=None if args.no_ground else DEFAULT_MARGIN_VOXELS)
     config = MovingEvalConfig(objects=objects, threshold_px=args.flow_threshold_px, min_pixels=args.min_pixels,

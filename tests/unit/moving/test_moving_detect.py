@@ -289,3 +289,52 @@ def test_box_grows_away_from_the_camera_that_saw_the_component_not_the_nearest_o
     assert iou_3d(seen["box_ref"][None], truth[None])[0, 0] > 0.6 > iou_3d(nearest["box_ref"][None], truth[None])[0, 0]
     with pytest.raises(ShapeError, match="seen_by"):
         moving_objects_from_flow(flow, occupancy, GRID, seen_by=seen_by[:1], **kwargs)
+
+
+def hysteresis_reference(magnitude, occupied, low, high):
+    """Slow, obvious: flood-fill the voxels above `low` outward from every voxel above `high`."""
+    weak = (magnitude > low) & occupied
+    labels, _ = flood_fill_labels(weak, 26)
+    seeds = {int(labels[p]) for p in zip(*np.nonzero(weak & (magnitude > high)))}
+    return np.isin(labels, sorted(seeds)) & weak
+
+
+def test_hysteresis_keeps_weak_voxels_connected_to_a_strong_one_and_nothing_else():
+    """A block whose flow is above the threshold in its front half only, one below it everywhere, and
+    random magnitudes: the moving voxels are the flood fill from the strong voxels through the weak ones."""
+    truth = np.array([-1.2, 0.6, 7.4, 4.0, 1.5, 2.0, 0.6])
+    block, occupancy = scene_with_block(truth)
+    centres_z = (np.arange(GRID.Z) + 0.5) * GRID.voxel_size + GRID.zmin
+    flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
+    flow[2][block] = 0.3                                        # weak: above 0.5 × 0.5, below the threshold
+    front = block & (centres_z < 7.4)[:, None, None]
+    flow[2][front] = 0.8                                        # strong
+    other = np.array([4.0, 0.6, 12.0, 2.0, 1.5, 2.0, 0.0])
+    lonely, _ = scene_with_block(other)                         # weak everywhere: never seeded
+    flow[2][lonely] = 0.3
+    occupancy = np.maximum(occupancy, lonely.astype(occupancy.dtype))
+    kwargs = dict(threshold=0.5, min_voxels=5, dt=0.1, moving_voxels="centres")
+    (with_h,) = moving_objects_from_flow(flow, occupancy, GRID, hysteresis=0.5, **kwargs)
+    (without,) = moving_objects_from_flow(flow, occupancy, GRID, hysteresis=1.0, **kwargs)
+    assert with_h["num_voxels"] == int(block.sum()) and without["num_voxels"] == int(front.sum())
+    assert iou_3d(with_h["box_ref"][None], truth[None])[0, 0] > iou_3d(without["box_ref"][None], truth[None])[0, 0]
+
+
+
+@pytest.mark.parametrize("hysteresis", [0.3, 0.6, 1.0])
+def test_moving_mask_is_the_flood_fill_from_the_strong_voxels(hysteresis):
+    from core.moving.detect_moving import moving_mask
+
+    rng = np.random.default_rng(1)
+    magnitude = rng.random((9, 6, 10))
+    candidates = rng.random((9, 6, 10)) < 0.6
+    got = moving_mask(magnitude, candidates, threshold=0.9, hysteresis=hysteresis)
+    expected = hysteresis_reference(magnitude, candidates, hysteresis * 0.9, 0.9)
+    np.testing.assert_array_equal(got, expected)
+    assert expected.sum() > ((magnitude > 0.9) & candidates).sum() or hysteresis == 1.0
+
+
+def test_hysteresis_outside_zero_one_is_refused():
+    flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
+    with pytest.raises(ValueError, match="hysteresis"):
+        moving_objects_from_flow(flow, None, GRID, threshold=0.5, min_voxels=5, dt=0.1, hysteresis=0.0)
