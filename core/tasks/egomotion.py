@@ -55,8 +55,8 @@ class EgomotionTaskConfig:
     rotation_weight: float = 10.0
     seed: int | None = None
     # Each step trains on a random subset of at least this many of the record's views (core.tasks.view_subset);
-    # None: every view.
-    min_views: int | None = 1
+    # None (default): every view. Measured at 1 in session 6: no gain on single-view pairs (see that module).
+    min_views: int | None = None
     input_occupancy: str = "splat"  # continuous occupancy (core.models.input_volume); "binary": before
     refine: bool = True             # the sub-voxel Gauss-Newton stage (core.models.egomotion_refine)
     refine_learned_channels: int = 0  # learned feature channels of that stage (measured: no gain, 4 cost ~60 ms)
