@@ -32,7 +32,8 @@ def register(kinds) -> None:
     parser = add_eval_parser(kinds, "moving", help="moving-object PR curves and AP (static/moving camera) "
                                                    "vs the 2.5D baselines")
     parser.add_argument("--dt", type=positive_float, default=DEFAULT_DT, help="seconds between steps (default %(default)s)")
-    parser.add_argument("--min-speed", type=non_negative_float, default=1.0, help="m/s above which a voxel moves (3D)")
+    parser.add_argument("--min-speed", type=non_negative_float, default=MovingObjectsConfig.min_speed,
+                        help="m/s above which a voxel moves (3D; default %(default)s)")
     parser.add_argument("--min-voxels", type=positive_int, default=3, help="smallest 3D component kept")
     parser.add_argument("--hysteresis", type=unit_fraction, default=DEFAULT_HYSTERESIS,
                         help="voxels above this share of the speed threshold move when connected to one above it "
