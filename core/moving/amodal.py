@@ -168,7 +168,9 @@ def amodal_box(xyz: np.ndarray, *, viewpoint: np.ndarray | None, prior: SizePrio
     length_axis = length_side[0]
     yaw = math.atan2(-length_axis[1], length_axis[0])
     yaw = (yaw + math.pi / 2) % math.pi - math.pi / 2          # a box is symmetric under yaw + π
-    return np.array([centre[0], centre[1], centre[2], extents["length"], height, extents["width"], yaw])
+    # A side seen within one voxel layer spans 0 m between voxel centres: the box is at least a voxel thick.
+    return np.array([centre[0], centre[1], centre[2], max(extents["length"], voxel), max(height, voxel),
+                     max(extents["width"], voxel), yaw])
 
 
 def _assign_sides(sides, whole, prior: SizePrior, to_object):

@@ -95,11 +95,15 @@ def l_shape_rectangle(points: np.ndarray, *, floor: float, step_deg: float = 1.0
     return centre, a, np.array([ca.max() - ca.min(), cp.max() - cp.min()])
 
 
-def fit_box_to_points(xyz: np.ndarray, *, pad: float = 0.0, l_shape_floor: float | None = None) -> np.ndarray:
-    """Canonical box (7,) around N×3 points of one frame; every side grows by `pad` metres.
+def fit_box_to_points(xyz: np.ndarray, *, pad: float = 0.0, l_shape_floor: float | None = None,
+                      min_extent: float = 0.0) -> np.ndarray:
+    """Canonical box (7,) around N×3 points of one frame; every side grows by `pad` metres and is at least
+    `min_extent` metres.
 
     `pad` accounts for the support of each sample: points at voxel centres need pad = voxel size
-    to cover their voxels. l_shape_floor: None — the minimum-area rectangle; a distance in metres —
+    to cover their voxels. `min_extent`: voxel centres of a surface seen within one voxel layer span 0 m
+    across it, though the surface may lie anywhere in that voxel: a side is at least one voxel then.
+    l_shape_floor: None — the minimum-area rectangle; a distance in metres —
     the L-shape (closeness) rectangle, for points on the visible faces of an object (l_shape_rectangle).
     """
     xyz = np.asarray(xyz, dtype=np.float64)
@@ -117,8 +121,8 @@ def fit_box_to_points(xyz: np.ndarray, *, pad: float = 0.0, l_shape_floor: float
     yaw = math.atan2(-axis[1], axis[0])
     yaw = (yaw + math.pi / 2) % math.pi - math.pi / 2             # a box is symmetric under yaw + π
     y_lo, y_hi = xyz[:, 1].min(), xyz[:, 1].max()
-    return np.array([centre_xz[0], 0.5 * (y_lo + y_hi), centre_xz[1],
-                     extent[0] + pad, y_hi - y_lo + pad, extent[1] + pad, yaw])
+    return np.array([centre_xz[0], 0.5 * (y_lo + y_hi), centre_xz[1], max(extent[0] + pad, min_extent),
+                     max(y_hi - y_lo + pad, min_extent), max(extent[1] + pad, min_extent), yaw])
 
 
 def voxel_indices_to_ref(zyx: np.ndarray, grid: GridConfig) -> np.ndarray:

@@ -127,7 +127,8 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
             score = center_surround_score(moving, score_box, grid, weight=occupied, shell_margin=margin)
             voxel_flow = f[:, zyx[:, 0], zyx[:, 1], zyx[:, 2]]  # 3×N voxels, (x, y, z)
             mean_flow = voxel_flow.mean(axis=1)                # 3
-            box = fit_box_to_points(voxel_indices_to_ref(zyx, grid), pad=pad) if size_prior is None else amodal_box(
+            box = fit_box_to_points(voxel_indices_to_ref(zyx, grid), pad=pad, min_extent=grid.voxel_size) \
+                if size_prior is None else amodal_box(
                 voxel_indices_to_ref(zyx, grid), viewpoint=_viewpoint(views, seen, zyx, grid), prior=size_prior,
                 voxel=grid.voxel_size, pad=pad, heading=coherent_heading(voxel_flow),
                 ground_y=None if ground is None else ground_y_at(ground, score_box[0], score_box[2]))

@@ -338,3 +338,21 @@ def test_hysteresis_outside_zero_one_is_refused():
     flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
     with pytest.raises(ValueError, match="hysteresis"):
         moving_objects_from_flow(flow, None, GRID, threshold=0.5, min_voxels=5, dt=0.1, hysteresis=0.0)
+
+
+def test_a_one_layer_surface_gives_a_box_one_voxel_thick_not_flat():
+    """Surface voxels in a single horizontal layer (a roof seen from above) have centres spanning 0 m
+    vertically; unpadded, that box would be flat. It is one voxel thick, with or without a size prior."""
+    from core.moving.amodal import SizePrior
+
+    flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
+    layer = np.zeros(GRID.shape_zyx, dtype=bool)
+    layer[10:18, 3, 12:16] = True                                   # 4 m × 2 m, one voxel layer (y index 3)
+    flow[0][layer] = 1.0
+    kwargs = dict(threshold=0.5, min_voxels=5, dt=0.1, moving_voxels="surface")
+    (visible,) = moving_objects_from_flow(flow, layer.astype(np.float32), GRID, **kwargs)
+    (whole,) = moving_objects_from_flow(flow, layer.astype(np.float32), GRID,
+                                        size_prior=SizePrior.from_size(4.0, 2.0, 1.5), **kwargs)
+    assert visible["box_ref"][4] == pytest.approx(GRID.voxel_size)
+    assert visible["box_ref"][3] == pytest.approx(3.5) and visible["box_ref"][5] == pytest.approx(1.5)
+    assert whole["box_ref"][4] >= GRID.voxel_size - 1e-9
