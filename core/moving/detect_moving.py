@@ -53,7 +53,7 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
                              nms_iou: float = 0.3, connectivity: int = 26, can_move=None,
                              size_prior: SizePrior | None = None, viewpoints=None, ground=None,
                              moving_voxels: str = "surface", seen_by=None,
-                             hysteresis: float = DEFAULT_HYSTERESIS) -> list[dict]:
+                             hysteresis: float = DEFAULT_HYSTERESIS, object_threshold: float = 0.0) -> list[dict]:
     """Scored oriented boxes of the independently moving objects.
 
     flow: 3×Z×Y×X voxels (x, y, z), stabilised (background ≈ 0). occupancy: Z×Y×X in [0, 1] or None
@@ -68,7 +68,8 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
     down to the `ground` plane (4,) (core.moving.ground; None: the visible vertical extent).
     moving_voxels: "surface" or "centres", what a moving voxel means (MOVING_VOXEL_PAD): the boxes of
     voxel centres are padded by 0 or by one voxel. hysteresis: in (0, 1]; voxels above hysteresis ×
-    threshold count when connected to one above the threshold (1: the threshold alone). seen_by: V×Z×Y×X bool or None — which of the
+    threshold count when connected to one above the threshold (1: the threshold alone). object_threshold:
+    a component (or piece of one) whose mean flow (voxels) is slower is no moving object. seen_by: V×Z×Y×X bool or None — which of the
     `viewpoints` saw each voxel (held one of its depth points); an amodal box then grows away from the
     cameras that saw its component (their centres averaged, weighted by how many of its voxels each saw),
     not from the nearest camera, which on a rig around the scene is often one that saw other faces or none.
@@ -127,6 +128,8 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
             score = center_surround_score(moving, score_box, grid, weight=occupied, shell_margin=margin)
             voxel_flow = f[:, zyx[:, 0], zyx[:, 1], zyx[:, 2]]  # 3×N voxels, (x, y, z)
             mean_flow = voxel_flow.mean(axis=1)                # 3
+            if np.linalg.norm(mean_flow) < object_threshold:   # the piece as a whole barely moves
+                continue
             box = fit_box_to_points(voxel_indices_to_ref(zyx, grid), pad=pad, min_extent=grid.voxel_size) \
                 if size_prior is None else amodal_box(
                 voxel_indices_to_ref(zyx, grid), viewpoint=_viewpoint(views, seen, zyx, grid), prior=size_prior,

@@ -34,6 +34,8 @@ def register(kinds) -> None:
     parser.add_argument("--dt", type=positive_float, default=DEFAULT_DT, help="seconds between steps (default %(default)s)")
     parser.add_argument("--min-speed", type=non_negative_float, default=MovingObjectsConfig.min_speed,
                         help="m/s above which a voxel moves (3D; default %(default)s)")
+    parser.add_argument("--min-object-speed", type=non_negative_float, default=MovingObjectsConfig.min_object_speed,
+                        help="m/s: a component whose mean velocity is slower is no moving object (default %(default)s)")
     parser.add_argument("--min-voxels", type=positive_int, default=3, help="smallest 3D component kept")
     parser.add_argument("--hysteresis", type=unit_fraction, default=DEFAULT_HYSTERESIS,
                         help="voxels above this share of the speed threshold move when connected to one above it "
@@ -82,6 +84,7 @@ def build_report(bundle, records, config: MovingEvalConfig = MovingEvalConfig(),
                               "pairs_moving_camera": result["pairs"]["moving"], "device": str(device),
                               "stabilised_with": result["stabilised_with"], "dt_s": objects.dt,
                               "min_speed_m_s": objects.min_speed, "hysteresis": objects.hysteresis,
+                              "min_object_speed_m_s": objects.min_object_speed,
                               "min_voxels": objects.min_voxels,
                               "box_occupancy": objects.occupancy, "ground_margin_voxels": objects.ground_margin,
                               "flow_threshold_px": config.threshold_px, "min_pixels": config.min_pixels,
@@ -139,7 +142,7 @@ def run(args) -> int:
     device = resolve_device(args.device)
     bundle = load_bundle_for_eval(args.bundle, device, NEEDS, data_dir=args.data)
     objects = MovingObjectsConfig(dt=args.dt, min_speed=args.min_speed, min_voxels=args.min_voxels,
-                                  hysteresis=args.hysteresis,
+                                  hysteresis=args.hysteresis, min_object_speed=args.min_object_speed,
                                   occupancy=args.occupancy,
                                   ground_margin=None if args.no_ground else DEFAULT_MARGIN_VOXELS)
     config = MovingEvalConfig(objects=objects, threshold_px=args.flow_threshold_px, min_pixels=args.min_pixels,

@@ -356,3 +356,18 @@ def test_a_one_layer_surface_gives_a_box_one_voxel_thick_not_flat():
     assert visible["box_ref"][4] == pytest.approx(GRID.voxel_size)
     assert visible["box_ref"][3] == pytest.approx(3.5) and visible["box_ref"][5] == pytest.approx(1.5)
     assert whole["box_ref"][4] >= GRID.voxel_size - 1e-9
+
+
+def test_a_component_slower_than_the_object_threshold_as_a_whole_is_dropped():
+    """Two blocks whose voxels all pass the voxel threshold: one moves at 0.6 voxels per step, the other
+    at 0.3 (its mean under object_threshold 0.4): only the first is a moving object."""
+    fast_box, slow_box = np.array([-4.0, 0.6, 6.0, 2.0, 1.5, 2.0, 0.0]), np.array([4.0, 0.6, 10.0, 2.0, 1.5, 2.0, 0.0])
+    fast, occupancy = scene_with_block(fast_box)
+    slow, _ = scene_with_block(slow_box)
+    flow = np.zeros((3,) + GRID.shape_zyx, dtype=np.float32)
+    flow[0][fast], flow[0][slow] = 0.6, 0.3
+    occupancy = np.maximum(occupancy, slow.astype(occupancy.dtype))
+    kwargs = dict(threshold=0.25, min_voxels=5, dt=0.1, moving_voxels="centres")
+    assert len(moving_objects_from_flow(flow, occupancy, GRID, object_threshold=0.0, **kwargs)) == 2
+    (only,) = moving_objects_from_flow(flow, occupancy, GRID, object_threshold=0.4, **kwargs)
+    assert only["box_ref"][0] == pytest.approx(-4.0, abs=0.3)
