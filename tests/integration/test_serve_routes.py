@@ -25,14 +25,16 @@ ROUTES = {"map": "/v1/map", "egomotion": "/v1/egomotion", "flow": "/v1/flow", "d
 
 
 ATOL = 1e-4
-MOVERS_SEED = 1  # a synthetic scene whose moving cars the untrained full bundle finds (3 boxes over 0.2 s)
+MOVERS_SEED = 1  # a synthetic scene whose moving cars the untrained full bundle finds (boxes over 0.05 s)
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("serve")
     bundle = make_bundle(tmp / "bundle")
-    with ServerProcess(bundle, "--max-wait-ms", "20", log_path=tmp / "server.log") as s:
+    # --frame-dt 0.05 as the frames' clock below: the untrained bundle's flow is slow, and 0.2 s steps left
+    # it under the speed thresholds (no boxes to compare between the transports).
+    with ServerProcess(bundle, "--max-wait-ms", "20", "--frame-dt", "0.05", log_path=tmp / "server.log") as s:
         s.bundle = bundle
         yield s
 
@@ -67,12 +69,12 @@ def grpc_client(server):
 
 def movers(count: int = 3, *, stamps=None):
     """`count` consecutive single-view client.Frames of a synthetic scene with moving cars (camera cam0,
-    sequence i, timestamp stamps[i], default 100 + 0.2·i)."""
+    sequence i, timestamp stamps[i], default 100 + 0.05·i)."""
     from services.inference.client import Frames
     from services.streaming.sources import synthetic_frames
 
     source = synthetic_frames(preset_name="tiny", seed=MOVERS_SEED, frames_per_episode=8)
-    stamps = [100.0 + 0.2 * i for i in range(count)] if stamps is None else stamps
+    stamps = [100.0 + 0.05 * i for i in range(count)] if stamps is None else stamps
     return [Frames(rgb=f["rgb"], depth=f["depth"], pix_T_cam=f["pix_T_cam"], world_T_cam=f["world_T_cam"],
                    camera_id="cam0", sequence=i, timestamp=stamps[i]) for i, f in zip(range(count), source)]
 
@@ -156,28 +158,29 @@ def test_every_route_of_a_full_bundle_answers_as_core_pipeline(server, rest, grp
 
 
 def test_velocities_follow_the_frames_clock(server, rest, grpc_client, core_bundle):
-    """The same pair stamped 0.2 s and 0.4 s apart answers what core.pipeline answers over 0.2 s and 0.4 s
-    (the speed threshold and the velocities scale with the interval); unstamped (both 0), it spans
-    (sequence1 − sequence0) × --frame-dt (0.2 s by default)."""
+    """The same pair stamped 0.05 s and 0.1 s apart answers what core.pipeline answers over 0.05 s and 0.1 s
+    (the speed thresholds and the velocities scale with the interval); unstamped (both 0), it spans
+    (sequence1 − sequence0) × --frame-dt (0.05 s on this server)."""
     import torch
 
     from core.pipeline import moving_objects
 
-    f0, f1 = movers(2, stamps=[0.0, 0.2])
+    f0, f1 = movers(2, stamps=[0.0, 0.05])
     pair = {**core_inputs(f0, "0"), **core_inputs(f1, "1")}
     answers = {}
-    for dt in (0.2, 0.4):
+    for dt in (0.05, 0.1):
         f1.timestamp = dt
         with torch.no_grad():
             want = core_boxes(moving_objects(core_bundle, **pair, dt=dt), -1.0)
         for client in (rest, grpc_client):
             answers[dt] = client.moving_objects(f0, f1)
             assert_boxes(answers[dt], want)
-    assert answers[0.2]["boxes"].shape != answers[0.4]["boxes"].shape or not np.allclose(
-        answers[0.2]["velocities"], answers[0.4]["velocities"])
+    assert len(answers[0.05]["boxes"]) > 0  # something to compare
+    assert answers[0.05]["boxes"].shape != answers[0.1]["boxes"].shape or not np.allclose(
+        answers[0.05]["velocities"], answers[0.1]["velocities"])
     f0.timestamp, f1.timestamp, f0.sequence, f1.sequence = 0.0, 0.0, 3, 5
     for client in (rest, grpc_client):
-        assert_boxes(client.moving_objects(f0, f1), answers[0.4])
+        assert_boxes(client.moving_objects(f0, f1), answers[0.1])
 
 
 @pytest.mark.parametrize("encoding,png", [("json", False), ("png", True)])
@@ -241,7 +244,7 @@ def test_stream_follows_the_bridge_rules_and_answers_as_core_pipeline(server, gr
     from core.pipeline import moving_objects
     from services.inference.client import ServiceCallError
 
-    frames = movers(3, stamps=[100.0, 100.2, 100.6])
+    frames = movers(3, stamps=[100.0, 100.05, 100.15])
     duplicate, older = copy.copy(frames[1]), copy.copy(frames[0])
     out = list(grpc_client.stream_moving_objects([frames[0], frames[1], duplicate, older, frames[2]]))
     assert [d["sequence"] for d in out] == [0, 1, 2] and len(out[0]["boxes"]) == 0
