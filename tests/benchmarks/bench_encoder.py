@@ -6,8 +6,9 @@ on a 1×4×128×32×128 volume — its inference forward in float32, and forward
 bf16 autocast. Printed: each median time, the encoder's arithmetic rate (multiply-adds of its
 convolutions counted from their shapes, ×2 FLOP) as a fraction of the SGEMM rate, the bf16 speed-up, the
 share of the forward spent outside the convolutions (the full-resolution tail: trilinear upsample and L2
-normalisation, from torch.profiler), that tail alone in channels-first and in channels-last layout (the
-encoder uses the latter without gradients, see core/models/encoder3d.py), and the load average. One JSON
+normalisation, from torch.profiler), that tail alone in channels-first and in channels-last layout and its
+forward+backward as plain ops and as the fused step the encoder uses on CPU (core/models/encoder3d.py,
+"Tail"), and the load average. One JSON
 line, then a summary.
 
     python tests/benchmarks/bench_encoder.py                       # 2 threads, paper grid
@@ -85,24 +86,38 @@ def tail_share(encoder, x) -> dict:
 
 
 def tail_layouts(out_channels: int, grid, repeats: int) -> dict:
-    """Median ms of the encoder's inference tail (trilinear ×2 upsample of the half-resolution F-channel
-    output, then L2 normalisation) in channels-first layout (the reference) and in channels-last layout
-    (what Encoder3D does without gradients, conversion included)."""
+    """Median ms of the encoder's tail (trilinear ×2 upsample of the half-resolution F-channel output, then
+    L2 normalisation): forward in channels-first layout (the reference) and channels-last (conversion
+    included), and forward + backward (a channels-first incoming gradient) of the plain ops against the
+    fused step the encoder uses on CPU (core.models.upsample_normalize)."""
     import torch
     import torch.nn.functional as F
 
     from core.models.normalize import l2_normalize_channels
+    from core.models.upsample_normalize import upsample_normalize
 
     half = torch.randn(1, out_channels, *(n // 2 for n in grid))  # 1×F×Z/2×Y/2×X/2
+    grad = torch.randn(1, out_channels, *grid)                     # 1×F×Z×Y×X
 
-    def tail(layout):
+    def plain(x):
+        return l2_normalize_channels(F.interpolate(x, size=tuple(grid), mode="trilinear", align_corners=False))
+
+    def forward(layout):
         def run():
-            x = half.contiguous(memory_format=layout)
-            l2_normalize_channels(F.interpolate(x, size=tuple(grid), mode="trilinear", align_corners=False))
+            plain(half.contiguous(memory_format=layout))
         return run
 
-    return {"tail_channels_first_ms": round(median_seconds(tail(torch.contiguous_format), repeats) * 1e3, 2),
-            "tail_channels_last_ms": round(median_seconds(tail(torch.channels_last_3d), repeats) * 1e3, 2)}
+    def forward_backward(fn):
+        def run():
+            x = half.clone().requires_grad_()
+            fn(x).backward(grad)
+        return run
+
+    return {"tail_channels_first_ms": round(median_seconds(forward(torch.contiguous_format), repeats) * 1e3, 2),
+            "tail_channels_last_ms": round(median_seconds(forward(torch.channels_last_3d), repeats) * 1e3, 2),
+            "tail_fwd_bwd_plain_ms": round(median_seconds(forward_backward(plain), repeats) * 1e3, 2),
+            "tail_fwd_bwd_fused_ms": round(median_seconds(forward_backward(
+                lambda x: upsample_normalize(x, tuple(grid))), repeats) * 1e3, 2)}
 
 
 def main(argv=None) -> int:
@@ -167,7 +182,8 @@ def main(argv=None) -> int:
     print(f"encoder {'×'.join(map(str, args.grid))} width {args.width}: forward {forward_s * 1e3:.0f} ms = "
           f"{encoder_gflops:.0f} GFLOP/s = {encoder_gflops / sgemm_gflops:.2f} × SGEMM ({sgemm_gflops:.0f} GFLOP/s), "
           f"{args.threads} threads, malloc {args.malloc}; tail (upsample + normalise) channels-first "
-          f"{result['tail_channels_first_ms']:.1f} ms, channels-last {result['tail_channels_last_ms']:.1f} ms"
+          f"{result['tail_channels_first_ms']:.1f} ms, channels-last {result['tail_channels_last_ms']:.1f} ms, "
+          f"fwd+bwd plain {result['tail_fwd_bwd_plain_ms']:.1f} ms, fused {result['tail_fwd_bwd_fused_ms']:.1f} ms"
           + (f"; fwd+bwd fp32 {result['fwd_bwd_fp32_s']:.3f} s, bf16 {result['fwd_bwd_bf16_s']:.3f} s "
              f"({result['bf16_speedup']:.2f}×)" if not args.no_backward else "")
           + f"; load {result['load_avg']}", flush=True)
