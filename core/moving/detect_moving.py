@@ -25,14 +25,15 @@ from core.moving.saliency import center_surround_score
 # centres scatter about the surface by ± half a voxel, so the centres' box is the object's (pad 0).
 # "centres" — the voxel's centre lies inside the object (the true flow of core.data.ground_truth.gt_flow);
 # the centres then span about a voxel less than the object (pad one voxel).
-# Measured (n3dmap eval moving, small preset, a 300-step trained chain, 16 and 32 held-out records): the
-# model's boxes at AP3D@0.5 static / moving camera 0.112 / 0.088 with pad one voxel, 0.378 / 0.412 with pad
-# 0 (on 32 fresh records 0.111 / 0.079 → 0.348 / 0.403); the true flow's 0.306 / 0.569 with one voxel and
-# 0.373 / 0.519 with 0 (fresh: 0.425 / 0.180 → 0.216 / 0.129).
+# Measured (n3dmap eval moving, small preset, a 300-step trained chain, development sets of 16 and 32
+# records): the model's boxes at AP3D@0.5 static / moving camera 0.112 / 0.088 with pad one voxel, 0.370 /
+# 0.343 with pad 0 (32 records: 0.111 / 0.079 → 0.354 / 0.346); the true flow's 0.306 / 0.569 with one voxel
+# and 0.373 / 0.519 with 0 (32 records: 0.425 / 0.180 → 0.216 / 0.129; both with the saliency box unpadded
+# too, in a first version).
 MOVING_VOXEL_PAD = {"surface": 0.0, "centres": 1.0}
 # A component's bird's-eye flow is coherent, and gives the amodal box its heading (core.moving.amodal,
 # rule 3), when the length of its voxels' mean flow is at least this share of their mean flow length
-# (1: all parallel). Measured on 32 held-out small-preset pairs: the true flow's components are all
+# (1: all parallel). Measured on 32 small-preset development pairs: the true flow's components are all
 # coherent, its direction within 20° of the object's heading for every one, while their visible boxes'
 # long axes are for 78 % (70 % of the one-voxel-thin strips); a 300-step model's flow is within 20° for
 # 90 % of its components at coherence ≥ 0.95 and 44–63 % below 0.9, where its visible boxes' long axes
@@ -64,12 +65,14 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
     as moving (core.moving.ground.above_ground: nothing at or below the ground moves). size_prior: None —
     each component's box covers its voxels (the visible part); a SizePrior — amodal boxes
     (core.moving.amodal): oversized components are split or dropped, and each box grows to a whole object
-    away from the nearest of `viewpoints` (V×3 camera centres in ref, metres; None: symmetrically) and
-    down to the `ground` plane (4,) (core.moving.ground; None: the visible vertical extent).
+    away from the cameras that saw it (`seen_by`; without it the nearest of `viewpoints`, V×3 camera
+    centres in ref, metres; None: symmetrically), along its coherent flow's heading (HEADING_COHERENCE),
+    and down to the `ground` plane (4,) (core.moving.ground; None: the visible vertical extent).
     moving_voxels: "surface" or "centres", what a moving voxel means (MOVING_VOXEL_PAD): the boxes of
-    voxel centres are padded by 0 or by one voxel. hysteresis: in (0, 1]; voxels above hysteresis ×
-    threshold count when connected to one above the threshold (1: the threshold alone). object_threshold:
-    a component (or piece of one) whose mean flow (voxels) is slower is no moving object. seen_by: V×Z×Y×X bool or None — which of the
+    voxel centres are padded by 0 or by one voxel (and are at least one voxel thick).
+    hysteresis: in (0, 1]; voxels above hysteresis × threshold count when connected to one above the
+    threshold (moving_mask; 1: the threshold alone). object_threshold: a component (or piece of one) whose
+    mean flow (voxels) is slower is no moving object. seen_by: V×Z×Y×X bool or None — which of the
     `viewpoints` saw each voxel (held one of its depth points); an amodal box then grows away from the
     cameras that saw its component (their centres averaged, weighted by how many of its voxels each saw),
     not from the nearest camera, which on a rig around the scene is often one that saw other faces or none.
