@@ -92,14 +92,11 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
             raise ShapeError(f"occupancy: expected {grid.Z}×{grid.Y}×{grid.X}, got {'×'.join(map(str, occ.shape))}")
     if dt <= 0:
         raise ValueError(f"dt must be positive, got {dt}")
-    if moving_voxels not in MOVING_VOXEL_PAD:
-        raise ValueError(f"moving_voxels must be one of {sorted(MOVING_VOXEL_PAD)}, got {moving_voxels!r}")
+    check_options(moving_voxels=moving_voxels, hysteresis=hysteresis)
     pad = MOVING_VOXEL_PAD[moving_voxels] * grid.voxel_size
     occupied = occ > occupied_above
     magnitude = np.linalg.norm(f, axis=0)                            # Z×Y×X voxels
     # Unoccupied voxels carry no motion (the paper zeroes their flow at test time).
-    if not 0 < hysteresis <= 1:
-        raise ValueError(f"hysteresis must be in (0, 1], got {hysteresis}")
     candidates = occupied
     if can_move is not None:
         allowed = to_numpy(can_move).astype(bool)
@@ -125,14 +122,14 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
         for zyx in pieces:
             if len(zyx) < min_voxels:
                 continue
-            # Saliency scores the voxels seen to move (the box covering them whole), not the hidden part of
-            # the object.
-            score_box = fit_box_to_voxels(zyx, grid)  # 7
-            score = center_surround_score(moving, score_box, grid, weight=occupied, shell_margin=margin)
             voxel_flow = f[:, zyx[:, 0], zyx[:, 1], zyx[:, 2]]  # 3×N voxels, (x, y, z)
             mean_flow = voxel_flow.mean(axis=1)                # 3
             if np.linalg.norm(mean_flow) < object_threshold:   # the piece as a whole barely moves
                 continue
+            # Saliency scores the voxels seen to move (the box covering them whole), not the hidden part of
+            # the object.
+            score_box = fit_box_to_voxels(zyx, grid)  # 7
+            score = center_surround_score(moving, score_box, grid, weight=occupied, shell_margin=margin)
             box = fit_box_to_points(voxel_indices_to_ref(zyx, grid), pad=pad, min_extent=grid.voxel_size) \
                 if size_prior is None else amodal_box(
                 voxel_indices_to_ref(zyx, grid), viewpoint=_viewpoint(views, seen, zyx, grid), prior=size_prior,
@@ -144,6 +141,15 @@ def moving_objects_from_flow(flow, occupancy, grid: GridConfig, *, threshold: fl
         return []
     keep = nms_bev(np.stack([d["box_ref"] for d in found]), np.array([d["score"] for d in found]), nms_iou)
     return [found[i] for i in keep]
+
+
+def check_options(*, moving_voxels: str, hysteresis: float) -> None:
+    """ValueError naming the option when `moving_voxels` is not a MOVING_VOXEL_PAD key or `hysteresis` is
+    outside (0, 1] (moving_objects_from_flow and core.pipeline.moving_boxes.MovingObjectsConfig)."""
+    if moving_voxels not in MOVING_VOXEL_PAD:
+        raise ValueError(f"moving_voxels must be one of {sorted(MOVING_VOXEL_PAD)}, got {moving_voxels!r}")
+    if not 0 < hysteresis <= 1:
+        raise ValueError(f"hysteresis must be in (0, 1], got {hysteresis}")
 
 
 def moving_mask(magnitude: np.ndarray, candidates: np.ndarray, *, threshold: float, hysteresis: float,

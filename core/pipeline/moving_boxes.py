@@ -24,7 +24,7 @@ from core.geometry.grid import GridConfig
 from core.geometry.poses import camera_centres
 from core.geometry.voxelize import voxelize
 from core.moving.amodal import SizePrior
-from core.moving.detect_moving import (DEFAULT_HYSTERESIS, MOVING_VOXEL_PAD, detections_to_tensors,
+from core.moving.detect_moving import (DEFAULT_HYSTERESIS, check_options, detections_to_tensors,
                                        moving_objects_from_flow)
 from core.moving.ground import DEFAULT_MARGIN_VOXELS, above_ground, fit_ground_plane
 
@@ -77,22 +77,15 @@ class MovingObjectsConfig:
 
     def __post_init__(self) -> None:
         if self.dt <= 0 or self.min_speed < 0 or self.min_object_speed < 0 or self.min_voxels < 1:
-            raise ValueError(f"need dt > 0, min_speed ≥ 0, min_voxels ≥ 1; got {self.dt}, {self.min_speed}, "
-                             f"{self.min_voxels}")
-        if not 0 < self.hysteresis <= 1:
-            raise ValueError(f"hysteresis must be in (0, 1], got {self.hysteresis}")
-        if self.moving_voxels not in MOVING_VOXEL_PAD:
-            raise ValueError(f"moving_voxels must be one of {sorted(MOVING_VOXEL_PAD)}, got {self.moving_voxels!r}")
+            raise ValueError(f"need dt > 0, min_speed ≥ 0, min_object_speed ≥ 0, min_voxels ≥ 1; got {self.dt}, "
+                             f"{self.min_speed}, {self.min_object_speed}, {self.min_voxels}")
+        check_options(moving_voxels=self.moving_voxels, hysteresis=self.hysteresis)
         if self.occupancy not in OCCUPANCY_SOURCES:
             raise ValueError(f"occupancy must be one of {OCCUPANCY_SOURCES}, got {self.occupancy!r}")
 
-    def threshold_voxels(self, grid: GridConfig) -> float:
-        """Flow magnitude (voxels per step) of `min_speed`."""
-        return self.min_speed * self.dt / grid.voxel_size
-
-    def object_threshold_voxels(self, grid: GridConfig) -> float:
-        """Flow magnitude (voxels per step) of `min_object_speed`."""
-        return self.min_object_speed * self.dt / grid.voxel_size
+    def threshold_voxels(self, grid: GridConfig, speed: float | None = None) -> float:
+        """Flow magnitude (voxels per step) of `speed` m/s (None: `min_speed`)."""
+        return (self.min_speed if speed is None else speed) * self.dt / grid.voxel_size
 
 
 @dataclass
@@ -153,7 +146,7 @@ def boxes_from_flow(flow: torch.Tensor, occupancy: torch.Tensor | None, grid: Gr
             can_move=above_ground(grid, planes[b], margin_voxels=item.ground_margin or 0.0),
             size_prior=item.size_prior, viewpoints=None if viewpoints is None else viewpoints[b], ground=planes[b],
             moving_voxels=item.moving_voxels, seen_by=None if seen_by is None else seen_by[b],
-            hysteresis=item.hysteresis, object_threshold=item.object_threshold_voxels(grid)))
+            hysteresis=item.hysteresis, object_threshold=item.threshold_voxels(grid, item.min_object_speed)))
     return detections_to_tensors(per_example, device=flow.device)
 
 

@@ -10,8 +10,9 @@ from dataclasses import replace
 
 import torch
 
-from core.data.ground_truth import gt_flow, gt_occupancy, points_in_ref
+from core.data.ground_truth import gt_flow, points_in_ref
 from core.geometry.poses import camera_centres, rig_cam_T_ref
+from core.geometry.voxelize import voxelize
 from core.moving.ground import fit_ground_plane
 from core.pipeline.moving import MovingObjectsConfig, boxes_from_flow
 
@@ -27,9 +28,8 @@ def oracle_boxes(record, t: int, grid, config: MovingObjectsConfig) -> dict:
     cam_T_ref = rig_cam_T_ref(torch.as_tensor(record["world_T_cam"][t], dtype=torch.float64)[None],
                               torch.as_tensor(record["world_T_ref"][t], dtype=torch.float64)[None])  # 1×V×4×4
     viewpoints = camera_centres(cam_T_ref).float()                              # 1×V×3 camera centres in ref
-    V = viewpoints.shape[1]
-    seen_by = torch.stack([gt_occupancy(record, t, grid, views=[v])[0] > 0 for v in range(V)])[None]  # 1×V×Z×Y×X
-    observed = seen_by.any(dim=1, keepdim=True).float()                        # 1×1×Z×Y×X
+    seen_by = (voxelize(xyz, grid, valid)[:, 0] > 0)[None]                     # 1×V×Z×Y×X, each view's points
+    observed = seen_by.any(dim=1, keepdim=True).float()                        # 1×1×Z×Y×X (gt_occupancy)
     out = boxes_from_flow(true_flow, observed, grid, replace(config, moving_voxels="centres"), ground=ground,
                           viewpoints=viewpoints, seen_by=seen_by)
     return {**out, "flow": true_flow, "observed": observed}

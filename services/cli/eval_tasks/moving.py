@@ -17,7 +17,6 @@ from core.eval.protocols.moving import (CAMERAS, IOUS, MODEL, NEEDS, ORACLE_3D, 
                                         evaluate)
 from core.eval.thresholds import threshold_key
 from core.moving.amodal import SizePrior
-from core.moving.detect_moving import DEFAULT_HYSTERESIS
 from core.moving.ground import DEFAULT_MARGIN_VOXELS
 from core.pipeline.moving import DEFAULT_DT, OCCUPANCY_SOURCES, MovingObjectsConfig
 from services.cli.argtypes import non_negative_float, positive_float, positive_int, unit_fraction
@@ -37,7 +36,7 @@ def register(kinds) -> None:
     parser.add_argument("--min-object-speed", type=non_negative_float, default=MovingObjectsConfig.min_object_speed,
                         help="m/s: a component whose mean velocity is slower is no moving object (default %(default)s)")
     parser.add_argument("--min-voxels", type=positive_int, default=3, help="smallest 3D component kept")
-    parser.add_argument("--hysteresis", type=unit_fraction, default=DEFAULT_HYSTERESIS,
+    parser.add_argument("--hysteresis", type=unit_fraction, default=MovingObjectsConfig.hysteresis,
                         help="voxels above this share of the speed threshold move when connected to one above it "
                              "(1: the threshold alone; default %(default)s)")
     parser.add_argument("--occupancy", choices=OCCUPANCY_SOURCES, default="observed",
