@@ -81,16 +81,20 @@ def sample_object_motions(B: int, grid: GridConfig, *, generator: torch.Generato
     return M.to(dtype=dtype, device=device), block.to(dtype=dtype, device=device)
 
 
-def move_block(vol: torch.Tensor, motion: torch.Tensor, block: torch.Tensor, grid: GridConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def move_block(vol: torch.Tensor, motion: torch.Tensor, block: torch.Tensor, grid: GridConfig, *,
+               vacate: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """The volume after only `block` moved by `motion`, and its flow.
 
     vol B×C×Z×Y×X, motion B×4×4, block B×1×Z×Y×X -> (vol1 B×C×Z×Y×X, flow B×3×Z×Y×X): vol1 holds the
-    moved block where it landed and vol elsewhere (the vacated space keeps the old content, as occluded
-    background would); flow is rigid_flow(motion) inside the block at t and 0 elsewhere, so
-    warp_flow(vol1, flow) = vol on the block (where it stays inside the grid) and off the landing place.
+    moved block where it landed and vol elsewhere; the vacated space (block, not landed on) keeps the old
+    content, as occluded background would in a feature map, or with `vacate` is zero (an input volume:
+    no points there, mid-grey colour, i.e. what a view that sees nothing there gives). flow is
+    rigid_flow(motion) inside the block at t and 0 elsewhere, so warp_flow(vol1, flow) = vol on the block
+    (where it stays inside the grid) and off the landing place.
     """
     inv = se3.invert(motion)
     moved = warp_rigid(vol, inv, grid)  # B×C×Z×Y×X
     landed = warp_rigid(block, inv, grid) > 0.5  # B×1×Z×Y×X
-    vol1 = torch.where(landed, moved, vol)
+    rest = torch.where(block > 0.5, torch.zeros_like(vol), vol) if vacate else vol
+    vol1 = torch.where(landed, moved, rest)
     return vol1, rigid_flow(motion, grid) * block

@@ -72,6 +72,18 @@ class Mapper(nn.Module):
 
         Returns (features B×V×F×Z×Y×X unit-norm, in_view B×V×1×Z×Y×X, occupancy B×V×1×Z×Y×X).
         """
+        volume, in_view = self.lift_views(rgb, depth, pix_T_cam, cam_T_ref)  # B×V×4×Z×Y×X, B×V×1×Z×Y×X
+        B, V = volume.shape[:2]
+        zyx = self.grid.shape_zyx
+        feats = self.encoder(volume.reshape(B * V, 4, *zyx))  # (B·V)×F×Z×Y×X
+        return (feats.reshape(B, V, self.feature_dim, *zyx),  # B×V×F×Z×Y×X
+                in_view,                                       # B×V×1×Z×Y×X
+                volume[:, :, :1])                              # B×V×1×Z×Y×X
+
+    def lift_views(self, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam: torch.Tensor,
+                   cam_T_ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The encoder's input: every view lifted into `ref` (core.models.input_volume). Inputs as
+        `encode_views` -> (volume B×V×4×Z×Y×X, in_view B×V×1×Z×Y×X)."""
         B, V, _, H, W = rgb.shape
         check_shape("depth", depth, (B, V, H, W))
         check_shape("pix_T_cam", pix_T_cam, (B, V, 4, 4))
@@ -79,11 +91,8 @@ class Mapper(nn.Module):
         volume, in_view = input_volume(rgb.reshape(B * V, 3, H, W), depth.reshape(B * V, H, W),
                                        pix_T_cam.reshape(B * V, 4, 4), cam_T_ref.reshape(B * V, 4, 4),
                                        self.grid)  # (B·V)×4×Z×Y×X, (B·V)×1×Z×Y×X
-        feats = self.encoder(volume)  # (B·V)×F×Z×Y×X
         zyx = self.grid.shape_zyx
-        return (feats.reshape(B, V, self.feature_dim, *zyx),  # B×V×F×Z×Y×X
-                in_view.reshape(B, V, 1, *zyx),                # B×V×1×Z×Y×X
-                volume[:, :1].reshape(B, V, 1, *zyx))          # B×V×1×Z×Y×X
+        return volume.reshape(B, V, 4, *zyx), in_view.reshape(B, V, 1, *zyx)
 
     def forward(self, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam: torch.Tensor,
                 cam_T_ref: torch.Tensor) -> torch.Tensor:

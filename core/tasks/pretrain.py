@@ -32,8 +32,11 @@ from core.geometry.freespace import free_space
 from core.geometry.grid import GridConfig
 from core.losses.contrastive import ContrastiveConfig, view_contrastive_loss
 from core.losses.dense import dense_l2
+from core.losses.local_matching import local_matching_loss
 from core.losses.occupancy import balanced_occupancy_loss, occupancy_accuracy
 from core.losses.regression import rgb_l1
+from core.geometry.resample import warp_rigid
+from core.models.flow_synthetic import move_block, sample_object_motions
 from core.models.latent_map import Mapper, masked_average
 from core.models.net2d import Net2D
 from core.models.occupancy_head import OccupancyHead
@@ -66,6 +69,12 @@ class PretrainConfig:
     coeff_rgb: float = 1.0
     free_space_stride: int = 2     # trace free-space rays from every n-th pixel per axis (labels only;
                                    # neighbouring rays cross the same voxels, tracing is the step's cost)
+    # Local matching term (core.losses.local_matching; either objective; 0 = off): weight, window radius
+    # (x, y, z voxels), softmax temperature, sampled voxels per example.
+    coeff_match: float = 0.0
+    match_radius: tuple[int, int, int] = (2, 1, 2)
+    match_temperature: float = 0.1
+    match_samples: int = 256
     seed: int | None = None        # view selection / sampling RNG; None uses torch's global RNG
 
     def __post_init__(self) -> None:
@@ -126,7 +135,10 @@ class PretrainTask(nn.Module):
         pix_T_cam = batch["pix_T_cam"]                             # B×V×4×4
         cam_T_ref = poses.cam_T_ref(batch, t, t)                  # B×V×4×4
 
-        feats, in_view, occupied = self.mapper.encode_views(rgb, depth, pix_T_cam, cam_T_ref)
+        volume, in_view = self.mapper.lift_views(rgb, depth, pix_T_cam, cam_T_ref)  # B×V×4×Z×Y×X, B×V×1×Z×Y×X
+        B, zyx = volume.shape[0], self.cfg.grid.shape_zyx
+        feats = self.mapper.encoder(volume.reshape(B * V, 4, *zyx)).reshape(B, V, -1, *zyx)  # B×V×F×Z×Y×X
+        occupied = volume[:, :, :1]                                     # B×V×1×Z×Y×X
         top3d = masked_average(feats[:, inputs], in_view[:, inputs])  # B×F×Z×Y×X
         free = self._free_space(depth, pix_T_cam, cam_T_ref)         # B×V×1×Z×Y×X
 
@@ -159,10 +171,36 @@ class PretrainTask(nn.Module):
             target_small = F.interpolate(rgb_target, size=(Hr, Wr), mode="area")  # B×3×Hr×Wr
             out["rgb_l1"] = rgb_l1(top2d + 0.5, target_small)  # the head predicts centred colour
             view_loss = self.cfg.coeff_rgb * out["rgb_l1"]
+        if self.cfg.coeff_match > 0:  # either objective: it trains the encoder only, on one view
+            out["loss_match"], out["match_hit"] = self._local_matching(volume[:, target], feats[:, target])
+            view_loss = view_loss + self.cfg.coeff_match * out["loss_match"]
 
         loss = view_loss + self.cfg.coeff_occ * out["loss_occ"]
         metrics = {k: v.detach().float() for k, v in out.items()}
         return {"loss": loss, **metrics}
+
+    def _local_matching(self, volume: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The local matching term (core.losses.local_matching) on one view per example: an object-sized
+        block of its input volume moves (core.models.flow_synthetic, the vacated voxels emptied), the
+        moved volume is encoded, and each sampled occupied voxel's feature must find itself again where
+        its content went, among that place's neighbours. Samples: half inside the block, half outside
+        (those must stay put while something moves nearby); voxels the block landed on are skipped.
+        volume: B×4×Z×Y×X, features: its encoding B×F×Z×Y×X -> (loss, hit rate) scalars."""
+        g, B = self.cfg.grid, volume.shape[0]
+        with torch.no_grad():
+            motion, block = sample_object_motions(B, g, generator=self._generator, dtype=volume.dtype,
+                                                  device=volume.device)  # B×4×4, B×1×Z×Y×X
+            moved, flow = move_block(volume, motion, block, g, vacate=True)  # B×4×Z×Y×X, B×3×Z×Y×X
+            landed = warp_rigid(block, se3.invert(motion), g) > 0.5  # B×1×Z×Y×X
+            occupied = volume[:, :1] > 0
+            inside = occupied & (block > 0.5)
+            outside = occupied & (block < 0.5) & ~landed
+        moved_features = self.mapper.encoder(moved)  # B×F×Z×Y×X
+        kwargs = dict(radius=self.cfg.match_radius, temperature=self.cfg.match_temperature,
+                      samples=self.cfg.match_samples // 2, generator=self._generator)
+        loss_in, hit_in = local_matching_loss(features, moved_features, flow, inside.to(volume.dtype), **kwargs)
+        loss_out, _ = local_matching_loss(features, moved_features, flow, outside.to(volume.dtype), **kwargs)
+        return loss_in + loss_out, hit_in
 
     def _free_space(self, depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor) -> torch.Tensor:
         """depth: B×V×H×W, pix_T_cam, cam_T_ref: B×V×4×4 -> free-space labels B×V×1×Z×Y×X."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from services.cli.argtypes import non_negative_float
 from services.cli.train import add_task_parser, run_train
 
 OBJECTIVES = ("contrastive", "regression")
@@ -14,4 +15,16 @@ def register(tasks) -> None:
                     "view-contrastive objective, or the RGB view-regression baseline.")
     parser.add_argument("--objective", choices=OBJECTIVES, default="contrastive",
                         help="view-contrastive (paper) or RGB view regression (baseline)")
-    parser.set_defaults(func=lambda args: run_train("pretrain", args, {"objective": args.objective}))
+    parser.add_argument("--match-weight", type=non_negative_float, default=0.0,
+                        help="weight of the local matching term (0, the default: off; the paper has none): "
+                             "an object-sized block of one view's input moves and each moved voxel's feature "
+                             "must find itself again among its new place's neighbours, so that 3D flow over "
+                             "the maps can follow objects (README: Status, flow over features)")
+    parser.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    options = {"objective": args.objective}
+    if args.match_weight > 0:  # recorded only when used: the default run's config stays the paper's
+        options["coeff_match"] = args.match_weight
+    return run_train("pretrain", args, options)

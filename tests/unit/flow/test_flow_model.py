@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from core.geometry import se3
@@ -126,3 +127,22 @@ def test_pyramid_levels_are_block_means_of_the_grid():
         assert [tuple(p.shape[-3:]) for p in pyramid] == [tuple(s) for s in sizes]
         for level, s in zip(pyramid, sizes):
             torch.testing.assert_close(level, torch.nn.functional.adaptive_avg_pool3d(c, s), atol=1e-6, rtol=1e-6)
+
+
+def test_vacated_block_is_emptied_and_the_landing_place_holds_the_content():
+    """move_block(vacate=True): what the block left is zero (an input volume: no points, mid grey);
+    without it the old content stays (a feature map's occluded background)."""
+    from core.models.flow_synthetic import move_block
+
+    vol0 = torch.ones(1, 2, GRID.Z, GRID.Y, GRID.X)
+    block = torch.zeros(1, 1, GRID.Z, GRID.Y, GRID.X)
+    block[..., 2:4, :, 2:4] = 1.0
+    shift = torch.eye(4).unsqueeze(0)
+    shift[0, 0, 3] = 3 * GRID.voxel_size  # 3 voxels along x: the block leaves its old place entirely
+    kept, _ = move_block(vol0, shift, block, GRID)
+    emptied, flow = move_block(vol0, shift, block, GRID, vacate=True)
+    assert float(kept.min()) == 1.0
+    assert float(emptied[..., 2:4, :, 2:4].abs().max()) == 0.0  # vacated
+    assert float(emptied[..., 2:4, :, 5:7].min()) > 0.99  # landed
+    torch.testing.assert_close(emptied[..., 6:, :, :], vol0[..., 6:, :, :])  # elsewhere untouched
+    assert float(flow[0, 0, 2, 0, 2]) == pytest.approx(3.0, abs=1e-5)

@@ -89,3 +89,19 @@ def test_flow_over_features_without_init_is_one_line_exit_2(tmp_path, capsys):
     line = _one_error_line(capsys)
     assert "--inputs features" in line and "--init BUNDLE" in line
     assert not (tmp_path / "r").exists()  # refused before anything was written
+
+
+def test_match_weight_reaches_the_task_options_and_a_negative_one_is_refused(tmp_path, capsys, monkeypatch):
+    import services.cli.train_tasks.pretrain as pretrain_cli
+
+    seen = {}
+    monkeypatch.setattr(pretrain_cli, "run_train", lambda task, args, options: seen.update(options) or 0)
+    base = ["train", "pretrain", "--data", str(tmp_path), "--run-dir", str(tmp_path / "r")]
+    assert main(base + ["--match-weight", "0.5"]) == 0
+    assert seen == {"objective": "contrastive", "coeff_match": 0.5}
+    seen.clear()
+    assert main(base) == 0
+    assert seen == {"objective": "contrastive"}  # off: the paper's objective, nothing extra recorded
+    with pytest.raises(SystemExit) as stop:
+        main(base + ["--match-weight", "-1"])
+    assert stop.value.code == 2 and "--match-weight" in capsys.readouterr().err
