@@ -52,6 +52,7 @@ class FlowTaskConfig:
     encoder_full_res: int = 0       # Encoder3D.full_res (see core.models.encoder3d)
     channels: int = 16
     levels: int = 3
+    radius: tuple[int, int, int] = (1, 1, 1)  # Flow3D.radius: cost-volume window (x, y, z) at every level
     warp_weight: float = 1.0
     smooth_weight: float = 0.05
     finest: int = 1                 # Flow3D.finest: 1 = PWC's half-resolution last decoder, 0 = on the grid
@@ -101,6 +102,7 @@ class FlowTask(nn.Module):
             raise ValueError(f"FlowTaskConfig.inputs must be one of {FLOW_INPUTS}, got {config.inputs!r}")
         in_channels = config.feature_dim if config.inputs == "features" else VOLUME_CHANNELS
         self.flow = Flow3D(in_channels=in_channels, channels=config.channels, levels=config.levels,
+                           radius=tuple(config.radius),
                            finest=config.finest, inputs=config.inputs, unit_cost=config.unit_cost,
                            soft_argmax=config.soft_argmax, refine=config.refine, beta=config.beta,
                            zero_bias=config.zero_bias)

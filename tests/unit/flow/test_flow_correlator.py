@@ -85,3 +85,17 @@ def test_volume_task_trains_the_flow_on_input_volumes():
     out["loss"].backward()
     assert torch.isfinite(out["loss"]) and task.flow.refine_zero_bias.grad is not None
     assert all(p.grad is None for p in task.mapper.parameters())  # frozen and not run
+
+
+def test_task_radius_reaches_every_cost_volume():
+    """FlowTaskConfig.radius is the module's window: D = 5·3·5 = 75 costs per level at (2, 1, 2)."""
+    from core.data.batch import records_to_batch
+    from core.presets import TINY
+    from core.synthetic.generate import generate_record
+    from core.tasks.flow import FlowTask
+
+    task = FlowTask.from_preset(TINY, seed=0, inputs="volume", radius=(2, 1, 2))
+    assert task.flow.config()["radius"] == [2, 1, 2]
+    assert task.flow.decoders[0][0].in_channels == 75 + task.flow.channels + 3
+    out = task(records_to_batch([generate_record(TINY, seed=3, moving_ego=True)]))
+    assert torch.isfinite(out["loss"])
