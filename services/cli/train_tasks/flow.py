@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from services.cli.argtypes import non_negative_int
 from services.cli.errors import CliError
 from services.cli.train import add_task_parser, run_train
 
@@ -20,6 +21,9 @@ def register(tasks) -> None:
                         help="what the module compares: input volumes (default) or mapper features")
     parser.add_argument("--warp-weight", type=float, default=1.0)
     parser.add_argument("--smooth-weight", type=float, default=0.05)
+    parser.add_argument("--radius", type=non_negative_int, nargs=3, default=None, metavar=("RX", "RY", "RZ"),
+                        help="cost-volume window in voxels (x, y, z) at every level (default 1 1 1; 2 1 2 "
+                             "measured better over matching-trained features, README: Status)")
     parser.set_defaults(func=_run)
 
 
@@ -28,5 +32,7 @@ def _run(args) -> int:
         # A randomly initialised, frozen mapper gives features that carry nothing to match.
         raise CliError("--inputs features compares the mapper's feature maps and needs a pretrained mapper: "
                        "pass --init BUNDLE (e.g. RUN_DIR/bundle of `n3dmap train pretrain`)")
-    return run_train("flow", args, {"inputs": args.inputs, "warp_weight": args.warp_weight,
-                                    "smooth_weight": args.smooth_weight})
+    options = {"inputs": args.inputs, "warp_weight": args.warp_weight, "smooth_weight": args.smooth_weight}
+    if args.radius is not None:
+        options["radius"] = list(args.radius)
+    return run_train("flow", args, options)

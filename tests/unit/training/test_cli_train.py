@@ -105,3 +105,16 @@ def test_match_weight_reaches_the_task_options_and_a_negative_one_is_refused(tmp
     with pytest.raises(SystemExit) as stop:
         main(base + ["--match-weight", "-1"])
     assert stop.value.code == 2 and "--match-weight" in capsys.readouterr().err
+
+
+def test_flow_radius_reaches_the_task_options(tmp_path, monkeypatch):
+    import services.cli.train_tasks.flow as flow_cli
+
+    seen = {}
+    monkeypatch.setattr(flow_cli, "run_train", lambda task, args, options: seen.update(options) or 0)
+    base = ["train", "flow", "--data", str(tmp_path), "--run-dir", str(tmp_path / "r")]
+    assert main(base + ["--radius", "2", "1", "2"]) == 0
+    assert seen["radius"] == [2, 1, 2]
+    seen.clear()
+    assert main(base) == 0
+    assert "radius" not in seen  # the module's default
