@@ -81,6 +81,11 @@ def sample_object_motions(B: int, grid: GridConfig, *, generator: torch.Generato
     return M.to(dtype=dtype, device=device), block.to(dtype=dtype, device=device)
 
 
+def landing_place(block: torch.Tensor, motion: torch.Tensor, grid: GridConfig) -> torch.Tensor:
+    """Where `block` B×1×Z×Y×X lands after `motion` B×4×4 (ref, applied to its content): B×1×Z×Y×X bool."""
+    return warp_rigid(block, se3.invert(motion), grid) > 0.5
+
+
 def move_block(vol: torch.Tensor, motion: torch.Tensor, block: torch.Tensor, grid: GridConfig, *,
                vacate: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """The volume after only `block` moved by `motion`, and its flow.
@@ -92,9 +97,8 @@ def move_block(vol: torch.Tensor, motion: torch.Tensor, block: torch.Tensor, gri
     rigid_flow(motion) inside the block at t and 0 elsewhere, so warp_flow(vol1, flow) = vol on the block
     (where it stays inside the grid) and off the landing place.
     """
-    inv = se3.invert(motion)
-    moved = warp_rigid(vol, inv, grid)  # B×C×Z×Y×X
-    landed = warp_rigid(block, inv, grid) > 0.5  # B×1×Z×Y×X
+    moved = warp_rigid(vol, se3.invert(motion), grid)  # B×C×Z×Y×X
+    landed = landing_place(block, motion, grid)  # B×1×Z×Y×X
     rest = torch.where(block > 0.5, torch.zeros_like(vol), vol) if vacate else vol
     vol1 = torch.where(landed, moved, rest)
     return vol1, rigid_flow(motion, grid) * block

@@ -73,12 +73,15 @@ class Mapper(nn.Module):
         Returns (features B×V×F×Z×Y×X unit-norm, in_view B×V×1×Z×Y×X, occupancy B×V×1×Z×Y×X).
         """
         volume, in_view = self.lift_views(rgb, depth, pix_T_cam, cam_T_ref)  # B×V×4×Z×Y×X, B×V×1×Z×Y×X
+        return self.encode_volumes(volume), in_view, volume[:, :, :1]
+
+    def encode_volumes(self, volume: torch.Tensor) -> torch.Tensor:
+        """Lifted views (`lift_views`) B×V×4×Z×Y×X -> their features B×V×F×Z×Y×X (unit norm), one
+        batched encoder pass."""
         B, V = volume.shape[:2]
         zyx = self.grid.shape_zyx
-        feats = self.encoder(volume.reshape(B * V, 4, *zyx))  # (B·V)×F×Z×Y×X
-        return (feats.reshape(B, V, self.feature_dim, *zyx),  # B×V×F×Z×Y×X
-                in_view,                                       # B×V×1×Z×Y×X
-                volume[:, :, :1])                              # B×V×1×Z×Y×X
+        feats = self.encoder(volume.reshape(B * V, volume.shape[2], *zyx))  # (B·V)×F×Z×Y×X
+        return feats.reshape(B, V, self.feature_dim, *zyx)  # B×V×F×Z×Y×X
 
     def lift_views(self, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam: torch.Tensor,
                    cam_T_ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

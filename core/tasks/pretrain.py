@@ -35,8 +35,7 @@ from core.losses.dense import dense_l2
 from core.losses.local_matching import local_matching_loss
 from core.losses.occupancy import balanced_occupancy_loss, occupancy_accuracy
 from core.losses.regression import rgb_l1
-from core.geometry.resample import warp_rigid
-from core.models.flow_synthetic import move_block, sample_object_motions
+from core.models.flow_synthetic import landing_place, move_block, sample_object_motions
 from core.models.latent_map import Mapper, masked_average
 from core.models.net2d import Net2D
 from core.models.occupancy_head import OccupancyHead
@@ -135,9 +134,9 @@ class PretrainTask(nn.Module):
         pix_T_cam = batch["pix_T_cam"]                             # B×V×4×4
         cam_T_ref = poses.cam_T_ref(batch, t, t)                  # B×V×4×4
 
+        # encode_views in two steps: the matching term below reuses the target's lifted volume
         volume, in_view = self.mapper.lift_views(rgb, depth, pix_T_cam, cam_T_ref)  # B×V×4×Z×Y×X, B×V×1×Z×Y×X
-        B, zyx = volume.shape[0], self.cfg.grid.shape_zyx
-        feats = self.mapper.encoder(volume.reshape(B * V, 4, *zyx)).reshape(B, V, -1, *zyx)  # B×V×F×Z×Y×X
+        feats = self.mapper.encode_volumes(volume)                     # B×V×F×Z×Y×X
         occupied = volume[:, :, :1]                                     # B×V×1×Z×Y×X
         top3d = masked_average(feats[:, inputs], in_view[:, inputs])  # B×F×Z×Y×X
         free = self._free_space(depth, pix_T_cam, cam_T_ref)         # B×V×1×Z×Y×X
@@ -191,7 +190,7 @@ class PretrainTask(nn.Module):
             motion, block = sample_object_motions(B, g, generator=self._generator, dtype=volume.dtype,
                                                   device=volume.device)  # B×4×4, B×1×Z×Y×X
             moved, flow = move_block(volume, motion, block, g, vacate=True)  # B×4×Z×Y×X, B×3×Z×Y×X
-            landed = warp_rigid(block, se3.invert(motion), g) > 0.5  # B×1×Z×Y×X
+            landed = landing_place(block, motion, g)  # B×1×Z×Y×X
             occupied = volume[:, :1] > 0
             inside = occupied & (block > 0.5)
             outside = occupied & (block < 0.5) & ~landed
