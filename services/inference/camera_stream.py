@@ -124,7 +124,8 @@ class MovingStream:
         with torch.inference_mode():
             encoding = encode_previous(bundle, **tensors, evidence=False, features=False, flow_encoding=False,
                                        timings=timings)
-            usable = (previous is not None and previous.bundle_version == version and "egomotion" in bundle.modules
+            usable = (previous is not None and not frame.scene_start and previous.bundle_version == version
+                      and "egomotion" in bundle.modules
                       and previous.frame.depth.shape == frame.depth.shape
                       and previous.encoding.ego_features is not None and encoding.ego_features is not None)
             if usable:
@@ -194,8 +195,9 @@ class MovingStream:
             current = ahead.encoding
             if previous is not None and ahead.ego_previous is previous:
                 ego_estimate = ahead.ego_estimate
-        if previous is None or previous.depth.shape != frame.depth.shape:
-            # First frame of this camera (or its image size changed): nothing to compare with yet.
+        if previous is None or previous.depth.shape != frame.depth.shape or frame.scene_start:
+            # First frame of this camera (or its image size changed, or its source cut to a new scene):
+            # nothing to compare with yet.
             state.extra.clear()
             if current is not None:  # but its own-ref work is the next step's frame 0
                 self._remember(state, frame.sequence, version, current)

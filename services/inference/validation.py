@@ -33,6 +33,7 @@ class View:
     sequence: int = 0
     timestamp: float = 0.0
     posed: bool = True
+    scene_start: bool = False  # the source cut to a new scene: not paired with the camera's previous frame
 
 
 @dataclass(frozen=True)
@@ -135,7 +136,7 @@ def _check_side(H: int, W: int, field: str) -> None:
 
 
 def make_view(*, rgb: np.ndarray, depth: np.ndarray, pix_T_cam, world_T_cam=None, field: str,
-              camera_id: str = "", sequence: int = 0, timestamp: float = 0.0) -> View:
+              camera_id: str = "", sequence: int = 0, timestamp: float = 0.0, scene_start: bool = False) -> View:
     """Validate one view's arrays; `field` prefixes the names in errors (e.g. `views[0]`)."""
     rgb = check_rgb(rgb, f"{field}.rgb")
     depth = check_depth(depth, f"{field}.depth")
@@ -148,7 +149,8 @@ def make_view(*, rgb: np.ndarray, depth: np.ndarray, pix_T_cam, world_T_cam=None
     if not np.isfinite(timestamp):
         raise InvalidInput(f"{field}.timestamp", "must be finite")
     return View(rgb=rgb, depth=depth, pix_T_cam=pix_T_cam, world_T_cam=world_T_cam,
-                camera_id=camera_id, sequence=int(sequence), timestamp=float(timestamp), posed=posed)
+                camera_id=camera_id, sequence=int(sequence), timestamp=float(timestamp), posed=posed,
+                scene_start=bool(scene_start))
 
 
 def stack_views(views: list[View], field: str) -> Views:

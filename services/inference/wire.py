@@ -114,7 +114,8 @@ def view_from_proto(frame: types_pb2.Frame, field: str) -> View:
         pix_T_cam=codecs.tensor_to_numpy(frame.pix_T_cam, f"{field}.pix_T_cam"),
         world_T_cam=(codecs.tensor_to_numpy(frame.world_T_cam, f"{field}.world_T_cam")
                      if frame.HasField("world_T_cam") else None),
-        field=field, camera_id=frame.camera_id, sequence=frame.sequence, timestamp=frame.timestamp)
+        field=field, camera_id=frame.camera_id, sequence=frame.sequence, timestamp=frame.timestamp,
+        scene_start=frame.scene_start)
 
 
 def views_from_proto(frames, field: str) -> Views:

@@ -34,6 +34,7 @@ class CameraStats:
     dropped_out_of_order: int = 0
     processing_errors: int = 0
     publisher_restarts: int = 0
+    scene_starts: int = 0  # processed frames the source marked as cuts (answered like a first frame)
     last_sequence: int | None = None
     latencies_ms: deque = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
 
@@ -45,7 +46,8 @@ class CameraStats:
             "malformed": self.malformed, "pending": self.pending,
             "dropped_behind": self.dropped_behind, "dropped_duplicate": self.dropped_duplicate,
             "dropped_out_of_order": self.dropped_out_of_order, "processing_errors": self.processing_errors,
-            "publisher_restarts": self.publisher_restarts, "last_sequence": self.last_sequence,
+            "publisher_restarts": self.publisher_restarts, "scene_starts": self.scene_starts,
+            "last_sequence": self.last_sequence,
             "latency_ms": {**pct, "count": int(lat.size)},
         }
 

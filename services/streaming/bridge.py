@@ -327,7 +327,7 @@ class Bridge:
         state.advance(frame)
         self._publish(keys.moving_objects(camera), outputs.moving_objects)
         self._publish(keys.egomotion(camera), outputs.egomotion)
-        self.accounting.update(camera, processed=1)
+        self.accounting.update(camera, processed=1, scene_starts=int(bool(getattr(frame, "scene_start", False))))
         self.accounting.set_last_sequence(camera, seq)
         self.accounting.add_latency(camera, 1000.0 * (self.clock() - float(frame.timestamp)))
 

@@ -27,10 +27,11 @@ log = logging.getLogger("n3dmap.camera")
 
 
 def encode_frame(frame: dict, *, camera_id: str, sequence: int, timestamp: float, encoding: str = "raw") -> bytes:
-    """A source frame dict (rgb H×W×3 uint8, depth H×W float32 m, pix_T_cam 4×4, world_T_cam 4×4)
-    → serialized `Frame`. `encoding`: "raw" (little-endian arrays, cheapest on one host) or "png"
+    """A source frame dict (rgb H×W×3 uint8, depth H×W float32 m, pix_T_cam 4×4, world_T_cam 4×4, optional
+    scene_start: the source cut to a new scene here) → serialized `Frame`. `encoding`: "raw" (little-endian arrays, cheapest on one host) or "png"
     (RGB PNG + uint16-millimetre depth PNG, smaller on a network)."""
-    msg = types_pb2.Frame(camera_id=camera_id, sequence=sequence, timestamp=timestamp)
+    msg = types_pb2.Frame(camera_id=camera_id, sequence=sequence, timestamp=timestamp,
+                          scene_start=bool(frame.get("scene_start", False)))
     if encoding == "png":
         msg.rgb.png = encode_png_rgb(frame["rgb"])
         msg.depth.png = encode_png_depth(frame["depth"])

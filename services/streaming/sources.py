@@ -1,9 +1,12 @@
 """Frame sources for the simulated camera: a dataset on disk or the live synthetic world.
 
 A source yields plain frames (one camera view at one time step) as dicts:
-    rgb H×W×3 uint8, depth H×W float32 (metres, 0 = missing), pix_T_cam 4×4, world_T_cam 4×4.
+    rgb H×W×3 uint8, depth H×W float32 (metres, 0 = missing), pix_T_cam 4×4, world_T_cam 4×4,
+    scene_start (bool: the first frame of a record).
 Records are walked in time order, one view (`view`) of each; consecutive records are separate
-episodes, so the stream "cuts" between them like a camera moved to a new place.
+episodes, so the stream "cuts" between them like a camera moved to a new place, and says so
+(`scene_start`, the Frame field): a bridge pairs no frame across the cut (a pair across it once gave a
+5 m "moving object" at 5.4 m/s in the quick start).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ def frames_from_records(records, *, view: int = 0) -> Iterator[dict]:
                 "depth": np.ascontiguousarray(record["depth"][t, view]),        # H×W
                 "pix_T_cam": np.asarray(record["pix_T_cam"][view], np.float32),  # 4×4
                 "world_T_cam": np.asarray(record["world_T_cam"][t, view], np.float32),  # 4×4
+                "scene_start": t == 0,
             }
 
 

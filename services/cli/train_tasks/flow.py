@@ -24,6 +24,11 @@ def register(tasks) -> None:
     parser.add_argument("--radius", type=non_negative_int, nargs=3, default=None, metavar=("RX", "RY", "RZ"),
                         help="cost-volume window in voxels (x, y, z) at every level (default 1 1 1; 2 1 2 "
                              "measured better over matching-trained features, README: Status)")
+    parser.add_argument("--refine-radius", type=non_negative_int, nargs=3, default=None, metavar=("RX", "RY", "RZ"),
+                        help="window of the last, full-grid correlator step (default: --radius's)")
+    parser.add_argument("--cost-channels", type=non_negative_int, default=None, metavar="K",
+                        help="squeeze the window's costs to K channels (a learned 1x1x1 conv) before each "
+                             "decoder, so a wide --radius costs little (default: the task's)")
     parser.set_defaults(func=_run)
 
 
@@ -35,4 +40,8 @@ def _run(args) -> int:
     options = {"inputs": args.inputs, "warp_weight": args.warp_weight, "smooth_weight": args.smooth_weight}
     if args.radius is not None:
         options["radius"] = list(args.radius)
+    if args.refine_radius is not None:
+        options["refine_radius"] = list(args.refine_radius)
+    if args.cost_channels is not None:
+        options["cost_channels"] = args.cost_channels
     return run_train("flow", args, options)

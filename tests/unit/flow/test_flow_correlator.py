@@ -99,3 +99,54 @@ def test_task_radius_reaches_every_cost_volume():
     assert task.flow.decoders[0][0].in_channels == 75 + task.flow.channels + 3
     out = task(records_to_batch([generate_record(TINY, seed=3, moving_ego=True)]))
     assert torch.isfinite(out["loss"])
+
+
+def test_cost_squeeze_feeds_the_decoders_k_channels_and_learns():
+    """cost_channels=k: each level's D costs pass a 1×1×1 conv to k channels, so the decoder's first conv
+    takes k + C + 3 inputs whatever the window; the squeeze gets gradients and the config round-trips."""
+    from core.models.registry import build_module
+
+    net = Flow3D(in_channels=4, channels=4, levels=2, hidden=8, radius=(2, 1, 2), cost_channels=6,
+                 unit_cost=True, refine=True, inputs="volume")
+    assert all(d[0].in_channels == 6 + 4 + 3 for d in net.decoders)
+    assert all(s[0].in_channels == 75 and s[0].out_channels == 6 for s in net.cost_squeeze)
+    torch.manual_seed(0)
+    f0, f1 = torch.rand(1, 4, 8, 4, 8), torch.rand(1, 4, 8, 4, 8)
+    for dec in net.decoders:  # a non-zero last conv, so the squeezed costs reach the flow
+        torch.nn.init.normal_(dec[-1].weight, std=0.1)
+    net(f0, f1)["flow"].square().sum().backward()
+    assert all(s[0].weight.grad is not None and s[0].weight.grad.abs().sum() > 0 for s in net.cost_squeeze)
+    rebuilt = build_module("flow3d", net.config())
+    rebuilt.load_state_dict(net.state_dict(), strict=True)
+    with torch.no_grad():
+        torch.testing.assert_close(rebuilt(f0, f1)["flow"], net(f0, f1)["flow"])
+    with pytest.raises(ValueError, match="cost_channels"):
+        Flow3D(in_channels=4, inputs="volume", cost_channels=-1)
+
+
+def test_refine_radius_sets_only_the_grid_step_window():
+    """refine_radius is the grid refinement's window; decoders keep `radius`. The refinement's soft-argmax
+    with window r moves a voxel at most r voxels per axis past the upsampled flow (an untrained module
+    has zero decoders, so the whole flow is the refinement's)."""
+    net = Flow3D(in_channels=4, channels=4, levels=2, hidden=8, radius=(2, 1, 2), refine_radius=(1, 0, 1),
+                 unit_cost=True, refine=True, inputs="volume", beta=1000.0)
+    assert net.config()["refine_radius"] == [1, 0, 1] and net.decoders[0][0].in_channels == 75 + 4 + 3
+    torch.manual_seed(0)
+    with torch.no_grad():
+        flow = net(torch.rand(1, 4, 8, 4, 8), torch.rand(1, 4, 8, 4, 8))["flow"]
+    assert flow[:, 1].abs().max() == 0  # y window 0
+    assert flow[:, 0].abs().max() <= 1 + 1e-5 and flow[:, 2].abs().max() <= 1 + 1e-5
+    assert Flow3D(in_channels=4, inputs="volume", radius=(2, 1, 2)).refine_radius == (2, 1, 2)  # default: radius
+    with pytest.raises(ValueError, match="refine_radius"):
+        Flow3D(in_channels=4, inputs="volume", refine_radius=(1, -1, 1))
+
+
+def test_a_module_saved_before_the_squeeze_and_refine_radius_loads():
+    """Configs without cost_channels / refine_radius (bundles made before them) build the same module."""
+    from core.models.registry import build_module
+
+    old = Flow3D(in_channels=8, channels=4, levels=2, hidden=8, radius=(2, 1, 2), refine=True, unit_cost=True)
+    config = {k: v for k, v in old.config().items() if k not in ("cost_channels", "refine_radius")}
+    rebuilt = build_module("flow3d", config)
+    rebuilt.load_state_dict(old.state_dict(), strict=True)
+    assert rebuilt.refine_radius == (2, 1, 2) and rebuilt.cost_channels == 0

@@ -343,3 +343,38 @@ def test_the_bridge_warms_up_before_its_first_frame(bundle_dir, frames):
     assert processor.stats()["warm_up"]["count"] == 1
     _assert_boxes_equal(got, reference_moving_objects(runtime.bundle, pair_of(views[0], views[1]),
                                                       stabilize="egomotion", dt=STEP_S))
+
+
+def test_a_scene_start_frame_is_answered_like_a_first_frame(bundle_dir, frames):
+    """A frame the source marks as a cut (Frame.scene_start) is not paired with the camera's previous frame:
+    no boxes, no egomotion; the frame after it pairs with it, as with a camera's first frame."""
+    runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
+    processor = RuntimeProcessor(runtime, min_score=-1.0)
+    processor_decode = RuntimeProcessor.__new__(RuntimeProcessor)
+    cut = dict(frames[2], scene_start=True)
+    views = decoded(frames)
+    views[2] = processor_decode.decode(encode_frame(cut, camera_id="c", sequence=2, timestamp=1000.0 + 2 * STEP_S))
+    assert views[2].scene_start and not views[1].scene_start and views[0].scene_start  # the source's episode start
+    state = CameraState()
+    answers = []
+    for frame in views[:4]:
+        outputs = processor.process("c", state, frame)
+        answers.append((types_pb2.Detections.FromString(outputs.moving_objects), outputs.egomotion))
+        state.advance(frame)
+    assert answers[1][1] is not None  # an ordinary pair: egomotion published
+    assert answers[2][1] is None and len(answers[2][0].boxes) == 0 and answers[2][0].sequence == 2
+    slow = reference_moving_objects(runtime.bundle, pair_of(views[2], views[3]), stabilize="egomotion", dt=STEP_S)
+    assert answers[3][1] is not None
+    _assert_boxes_equal(answers[3][0], slow)
+
+
+def test_synthetic_and_recorded_sources_mark_each_scene_start():
+    """Every record / synthetic episode starts with scene_start, and the flag survives the wire."""
+    source = synthetic_frames(preset_name="tiny", seed=0, frames_per_episode=2)
+    flags = [next(source)["scene_start"] for _ in range(5)]
+    assert flags == [True, False, True, False, True]
+    processor = RuntimeProcessor.__new__(RuntimeProcessor)
+    frame = next(source)
+    for flag in (True, False):
+        view = processor.decode(encode_frame(dict(frame, scene_start=flag), camera_id="c", sequence=0, timestamp=1.0))
+        assert view.scene_start is flag
