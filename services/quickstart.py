@@ -226,7 +226,7 @@ def report_bridge_accounting(out: str) -> None:
             status = json.loads(line)["final_status"]["cameras"].get("cam0", {})
             print(f"   bridge accounting for cam0: received {status.get('received')}, processed "
                   f"{status.get('processed')}, dropped {status.get('dropped')}, malformed {status.get('malformed')}, "
-                  f"errors {status.get('processing_errors')}; "
+                  f"errors {status.get('processing_errors')}, scene_starts {status.get('scene_starts')}; "
                   f"latency p50 {status.get('latency_ms', {}).get('p50')} ms", flush=True)
 
 

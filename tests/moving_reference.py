@@ -24,19 +24,23 @@ from core.pipeline.moving_boxes import MovingObjectsConfig, boxes_from_flow, fra
 
 @torch.no_grad()
 def reference_moving_objects(bundle, pair: dict, *, stabilize: str, dt: float,
-                             config: MovingObjectsConfig | None = None) -> dict:
-    """pair: the keywords of core.pipeline.moving_objects (rgb0, ..., world_T_cam1; no world_T_ref).
+                             config: MovingObjectsConfig | None = None, world_T_ref0=None, world_T_ref1=None) -> dict:
+    """pair: the keywords of core.pipeline.moving_objects (rgb0, ..., world_T_cam1); world_T_ref0/1: B×4×4
+    map frames (None: the cameras of view 0).
     stabilize: "egomotion" or "poses". Returns boxes, scores, valid, velocities, flow, ref0_T_ref1 and,
     with an egomotion module, cam0_T_cam1 (all as moving_step returns them)."""
     cfg = replace(config or MovingObjectsConfig(), dt=dt)
     mapper, flow_net, grid = bundle.modules["mapper"], bundle.modules["flow"], bundle.modules["mapper"].grid
-    ego = estimate_egomotion(bundle, **pair) if "egomotion" in bundle.modules else {}
+    ego = (estimate_egomotion(bundle, **pair, world_T_ref0=world_T_ref0, world_T_ref1=world_T_ref1)
+           if "egomotion" in bundle.modules else {})
+    world_T_ref0 = pair["world_T_cam0"][:, 0] if world_T_ref0 is None else world_T_ref0  # B×4×4
+    world_T_ref1 = pair["world_T_cam1"][:, 0] if world_T_ref1 is None else world_T_ref1
     if stabilize == "egomotion":
         ref0_T_ref1 = ego["ref0_T_ref1"]
-    else:  # the cameras of view 0: ref0_T_ref1 = inv(world_T_cam0[0]) · world_T_cam1[0]
-        ref0_T_ref1 = se3.invert(pair["world_T_cam0"][:, 0]) @ pair["world_T_cam1"][:, 0]
-    cam0_T_ref0 = rig_cam_T_ref(pair["world_T_cam0"], None)                                   # B×V×4×4
-    cam1_T_ref0 = rig_cam_T_ref(pair["world_T_cam1"], None) @ se3.invert(ref0_T_ref1)[:, None]  # B×V×4×4
+    else:  # ref0_T_ref1 = inv(world_T_ref0) · world_T_ref1
+        ref0_T_ref1 = se3.invert(world_T_ref0) @ world_T_ref1
+    cam0_T_ref0 = rig_cam_T_ref(pair["world_T_cam0"], world_T_ref0)                                   # B×V×4×4
+    cam1_T_ref0 = rig_cam_T_ref(pair["world_T_cam1"], world_T_ref1) @ se3.invert(ref0_T_ref1)[:, None]  # B×V×4×4
     f0 = mapper(pair["rgb0"], pair["depth0"], pair["pix_T_cam0"], cam0_T_ref0)
     f1 = mapper(pair["rgb1"], pair["depth1"], pair["pix_T_cam1"], cam1_T_ref0)
     if flow_net.inputs == "volume":

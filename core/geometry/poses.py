@@ -34,3 +34,31 @@ def rig_cam_T_ref(world_T_cam: torch.Tensor, world_T_ref: torch.Tensor | None) -
 def camera_centres(cam_T_ref: torch.Tensor) -> torch.Tensor:
     """cam_T_ref ...×4×4 -> ...×3: each camera's centre in ref (the translation of ref_T_cam)."""
     return se3.invert(cam_T_ref)[..., :3, 3]
+
+
+# Below this horizontal length of the camera's optical axis (a camera looking nearly straight up or down)
+# the heading comes from its x axis instead, which is then close to horizontal.
+LEVEL_MIN_HORIZONTAL = 0.1
+
+
+def levelled(world_T_cam: torch.Tensor) -> torch.Tensor:
+    """The camera's gravity-levelled frame: world_T_cam ...×4×4 in a world whose Y points down (gravity)
+    -> world_T_level ...×4×4 with the camera's centre as origin, Y = world Y (down), and Z the camera's
+    optical axis projected onto the horizontal plane (its heading); X = Y × Z, i.e. right. Pitch and roll
+    are dropped, yaw kept: level_T_cam is a rotation about the level's x and z axes only.
+
+    Why: an upright object has a yaw-only box (docs/conventions.md#boxes) only in a frame whose Y is
+    vertical, and the map's ground plane is horizontal only there; the synthetic cameras look down ~10°.
+    """
+    R = world_T_cam[..., :3, :3]  # ...×3×3, columns: the camera's axes in world
+    forward, right = R[..., :, 2], R[..., :, 0]  # ...×3 each
+    horizontal = torch.linalg.vector_norm(forward[..., [0, 2]], dim=-1)  # ...
+    # yaw ψ of the level frame: its Z column is (sin ψ, 0, cos ψ), its X column (cos ψ, 0, −sin ψ)
+    yaw_from_forward = torch.atan2(forward[..., 0], forward[..., 2])
+    yaw_from_right = torch.atan2(-right[..., 2], right[..., 0])
+    yaw = torch.where(horizontal >= LEVEL_MIN_HORIZONTAL, yaw_from_forward, yaw_from_right)  # ...
+    world_T_level = torch.zeros_like(world_T_cam)
+    world_T_level[..., :3, :3] = se3.yaw_to_matrix(yaw)
+    world_T_level[..., :3, 3] = world_T_cam[..., :3, 3]
+    world_T_level[..., 3, 3] = 1.0
+    return world_T_level

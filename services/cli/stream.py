@@ -43,6 +43,11 @@ def register(subparsers) -> None:
                              "components are split or dropped, partial ones completed (default: visible boxes); "
                              "`n3dmap eval moving` estimates it without labels and prints it in its report")
     bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
+    bridge.add_argument("--level", action="store_true",
+                        help="map (and box) each frame in its camera levelled to gravity (frame \"level\": the camera's "
+                             "centre and heading, Y down) instead of the camera itself: upright boxes, a level "
+                             "ground. Needs every frame's world_T_cam in a world whose Y points down (the "
+                             "synthetic world's and n3dmap's datasets'); a frame without one counts as malformed")
     bridge.add_argument("--no-lookahead", dest="lookahead", action="store_false",
                         help="one worker thread only: no look-ahead thread encoding the next frame and its "
                              "egomotion beside the current step (that thread is what lets the small preset "
@@ -143,7 +148,8 @@ def _run_bridge(args: argparse.Namespace) -> int:
         from core.moving.amodal import SizePrior
 
         prior = None if args.size_prior is None else SizePrior.from_size(*args.size_prior)
-        processor = RuntimeProcessor(runtime, min_score=args.min_score, frame_dt=args.frame_dt, size_prior=prior)
+        processor = RuntimeProcessor(runtime, min_score=args.min_score, frame_dt=args.frame_dt, size_prior=prior,
+                                     level=args.level)
     except ValueError as e:
         raise CliError(str(e)) from None
     warm_s = processor.warm_up()  # before "ready": the first frames do not pay the models' one-time costs

@@ -26,18 +26,20 @@ import torch
 
 from core.moving.amodal import SizePrior
 from core.pipeline import encode_previous, moving_step
-from core.geometry.poses import rig_cam_T_ref
+from core.geometry.poses import levelled, rig_cam_T_ref
 from core.pipeline.egomotion import egomotion_from_volumes
 from core.pipeline.encoding import FrameEncoding, is_complete
 from core.pipeline.moving_boxes import MovingObjectsConfig
 from n3dmap.v1 import inference_pb2, types_pb2
 from services.inference import codecs
 from services.inference.camera_state import CameraState
+from services.inference.errors import InvalidInput
 from services.inference.routes import BOX_FRAME, detections_results, moving_interval, pair_tensors, views_tensors
 from services.inference.validation import View, stack_views
 from services.inference.wire import detections_proto
 
 STAGE_WINDOW = 512  # per-stage timings kept for the status percentiles
+LEVEL_FRAME = "level"  # the boxes' frame with `level=True`: the previous frame's camera, levelled to gravity
 
 
 @dataclass(frozen=True)
@@ -68,10 +70,14 @@ class MovingStream:
     and `prepare` from one thread at a time (the bridge's worker, or the runtime's model thread)."""
 
     def __init__(self, runtime, *, min_score: float, frame_dt: float, size_prior: SizePrior | None = None,
-                 reuse: bool = True) -> None:
+                 reuse: bool = True, level: bool = False) -> None:
         """min_score: boxes scored below it are dropped; frame_dt: seconds per sequence number for frames
         without timestamps; size_prior: amodal boxes of this object size (core.moving.amodal), or None for
-        visible boxes; reuse: False encodes the previous frame again every step (for comparisons)."""
+        visible boxes; reuse: False encodes the previous frame again every step (for comparisons);
+        level: each frame's map frame is its camera levelled to gravity (core.geometry.poses.levelled: the
+        frames' world_T_cam must be given, in a world whose Y points down), so boxes are upright and the
+        ground is level; the Detections say frame "level" and carry its pose in world_T_frame. Otherwise the
+        map frame is the camera itself (frame "ref")."""
         if not frame_dt > 0:
             raise ValueError(f"frame_dt must be positive seconds, got {frame_dt}")
         self.runtime = runtime
@@ -79,9 +85,32 @@ class MovingStream:
         self.frame_dt = float(frame_dt)
         self.config = MovingObjectsConfig(size_prior=size_prior)
         self.reuse = reuse
+        self.level = bool(level)
+        self.box_frame = LEVEL_FRAME if self.level else BOX_FRAME
         self._stages: dict[str, deque] = {}
         self._stages_lock = threading.Lock()
         self._warm: set[tuple] = set()  # (bundle version, image size) pairs already warmed up
+
+    # -- the map frame ------------------------------------------------------------------------------
+    def _world_T_ref(self, frame: View, world_T_cam: torch.Tensor) -> torch.Tensor | None:
+        """world_T_ref 1×4×4 of `frame`'s map (world_T_cam: its 1×1×4×4 tensor): its camera levelled, or None
+        (the camera itself). Raises InvalidInput for a frame without a pose when levelling."""
+        if not self.level:
+            return None
+        self._check_posed(frame)
+        return levelled(world_T_cam[:, 0])
+
+    def _check_posed(self, frame: View) -> None:
+        if self.level and not frame.posed:
+            raise InvalidInput("frame.world_T_cam", "missing: levelled boxes need each frame's camera pose in a "
+                                                    "gravity-aligned world (Y down); run without levelling to "
+                                                    "get boxes in the camera's frame")
+
+    def _world_T_frame(self, frame: View) -> np.ndarray:
+        """The 4×4 pose of `frame`'s map frame in world (Detections.world_T_frame)."""
+        if not self.level:
+            return frame.world_T_cam
+        return levelled(torch.from_numpy(frame.world_T_cam).double()).float().numpy()
 
     # -- the per-camera cache ----------------------------------------------------------------------
     def _cached(self, state: CameraState, sequence: int, version: str) -> FrameEncoding | None:
@@ -103,8 +132,9 @@ class MovingStream:
         if is_complete(cached, bundle):
             return
         timings: dict[str, float] = {}
+        tensors = views_tensors([stack_views([previous], "previous")], self.runtime.device)
         with torch.inference_mode():
-            encoding = encode_previous(bundle, **views_tensors([stack_views([previous], "previous")], self.runtime.device),
+            encoding = encode_previous(bundle, **tensors, world_T_ref=self._world_T_ref(previous, tensors["world_T_cam"]),
                                        cached=cached, fit_ground=self.config.ground_margin is not None, timings=timings)
         self._remember(state, previous.sequence, version, encoding)
         self._record({f"idle_{k}": v for k, v in timings.items()})
@@ -122,8 +152,9 @@ class MovingStream:
         tensors = views_tensors([stack_views([frame], "frame")], self.runtime.device)
         ego_previous, ego_estimate = None, None
         with torch.inference_mode():
-            encoding = encode_previous(bundle, **tensors, evidence=False, features=False, flow_encoding=False,
-                                       timings=timings)
+            world_T_ref1 = self._world_T_ref(frame, tensors["world_T_cam"])
+            encoding = encode_previous(bundle, **tensors, world_T_ref=world_T_ref1, evidence=False, features=False,
+                                       flow_encoding=False, timings=timings)
             usable = (previous is not None and not frame.scene_start and previous.bundle_version == version
                       and "egomotion" in bundle.modules
                       and previous.frame.depth.shape == frame.depth.shape
@@ -135,7 +166,8 @@ class MovingStream:
                 world_T_cam0 = world_T_cam0.to(self.runtime.device)
                 ego_estimate = egomotion_from_volumes(
                     bundle.modules["egomotion"], previous.encoding.ego_volume, encoding.ego_volume,
-                    rig_cam_T_ref(world_T_cam0, None), rig_cam_T_ref(tensors["world_T_cam"], None),
+                    rig_cam_T_ref(world_T_cam0, self._world_T_ref(previous.frame, world_T_cam0)),
+                    rig_cam_T_ref(tensors["world_T_cam"], world_T_ref1),
                     features=(previous.encoding.ego_features, encoding.ego_features))
                 ego_previous = previous.frame
                 timings["egomotion"] = time.perf_counter() - started
@@ -202,16 +234,20 @@ class MovingStream:
             if current is not None:  # but its own-ref work is the next step's frame 0
                 self._remember(state, frame.sequence, version, current)
             self._warm_up(bundle, version, frame)
-            empty = types_pb2.Detections(frame=BOX_FRAME, bundle_version=version, camera_id=camera,
+            self._check_posed(frame)  # an unposed frame is refused now, not only at its pair
+            empty = types_pb2.Detections(frame=self.box_frame, bundle_version=version, camera_id=camera,
                                          sequence=frame.sequence, source_timestamp=frame.timestamp,
-                                         world_T_frame=codecs.numpy_to_tensor(frame.world_T_cam))
+                                         world_T_frame=codecs.numpy_to_tensor(self._world_T_frame(frame)))
             return StepAnswer(detections=empty, egomotion=None)
         views0 = stack_views([previous], "previous")
         dt = moving_interval(views0, views1, modules=bundle.modules, frame_dt=self.frame_dt,
                              pose_fields=("frame.world_T_cam", "frame.world_T_cam"), time_field="frame")
         timings: dict[str, float] = {}
+        pair = pair_tensors([views0], [views1], self.runtime.device)
+        levels = {"world_T_ref0": self._world_T_ref(previous, pair["world_T_cam0"]),
+                  "world_T_ref1": self._world_T_ref(frame, pair["world_T_cam1"])}
         with torch.inference_mode():
-            out = moving_step(bundle, **pair_tensors([views0], [views1], self.runtime.device), config=self.config,
+            out = moving_step(bundle, **pair, **levels, config=self.config,
                               previous=self._cached(state, previous.sequence, version), current=current,
                               ego_estimate=ego_estimate, dt=dt, timings=timings)
         # This frame's own-ref work (its egomotion volume) is the next step's previous-frame cache.
@@ -219,12 +255,14 @@ class MovingStream:
         egomotion = None
         if "cam0_T_cam1" in out:
             egomotion = inference_pb2.EgomotionResponse(
-                info=inference_pb2.ResponseInfo(bundle_version=version, frame=BOX_FRAME),
+                info=inference_pb2.ResponseInfo(bundle_version=version, frame=BOX_FRAME),  # camera to camera
                 cam0_T_cam1=codecs.numpy_to_tensor(out["cam0_T_cam1"][0].float().cpu().numpy()))
         (moving,) = detections_results(out, [self.min_score], label="moving")
-        # Boxes are in ref = the camera at the previous frame; sequence/timestamp name the newest frame.
-        detections = detections_proto(moving, frame=BOX_FRAME, bundle_version=version, views=views1, ref_views=views0,
-                                      latency_s=time.perf_counter() - started)
+        # Boxes are in the previous frame's map frame (its camera, or that levelled); sequence/timestamp name
+        # the newest frame.
+        detections = detections_proto(moving, frame=self.box_frame, bundle_version=version, views=views1,
+                                      ref_views=views0, latency_s=time.perf_counter() - started)
+        detections.world_T_frame.CopyFrom(codecs.numpy_to_tensor(self._world_T_frame(previous)))
         detections.camera_id = camera
         timings["step_total"] = time.perf_counter() - started
         self._record(timings)

@@ -20,6 +20,20 @@ from services.streaming import keys
 from services.streaming.session import ZenohOptions, open_session
 
 
+def _world_T_frame(msg: types_pb2.Detections) -> list | None:
+    """Detections.world_T_frame as 4×4 nested lists, or None when absent or not a 4×4 matrix."""
+    from services.inference.codecs import tensor_to_numpy
+    from services.inference.errors import InvalidInput
+
+    if not msg.HasField("world_T_frame"):
+        return None
+    try:
+        matrix = tensor_to_numpy(msg.world_T_frame, "world_T_frame")
+    except InvalidInput:
+        return None
+    return matrix.astype(float).tolist() if matrix.shape == (4, 4) else None
+
+
 def detections_to_json(msg: types_pb2.Detections, *, received_at: float) -> dict:
     return {
         "camera_id": msg.camera_id, "sequence": int(msg.sequence), "frame": msg.frame,
@@ -27,6 +41,8 @@ def detections_to_json(msg: types_pb2.Detections, *, received_at: float) -> dict
         "end_to_end_ms": round(1000.0 * (received_at - msg.source_timestamp), 2),
         "boxes": [{"x": b.x, "y": b.y, "z": b.z, "lx": b.lx, "ly": b.ly, "lz": b.lz, "yaw": b.yaw,
                    "score": b.score, "label": b.label, "velocity": [b.vx, b.vy, b.vz]} for b in msg.boxes],
+        # the pose of the boxes' frame in the cameras' world (4×4 rows), when the bridge knows it
+        "world_T_frame": _world_T_frame(msg),
     }
 
 

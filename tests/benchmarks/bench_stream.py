@@ -19,9 +19,10 @@ average of the host before and after (the dev machine is shared: read the figure
 
 Accuracy of what the stream publishes: the camera's episode is regenerated here (the same seed and
 frames, core.synthetic), and each published frame's boxes (in `ref` = the camera at the previous
-processed frame) are matched to the cars truly moving from that frame on (core.eval.moving_protocol's
-ground truth), greedily by score at 3D IoU 0.25 and 0.5 (core.eval.iou3d.iou_3d_across_frames: the
-camera is tilted, so the boxes are compared across frames). Printed: precision (matched boxes /
+processed frame, or that camera levelled to gravity with `--level`: the Detections' world_T_frame) are
+matched to the cars truly moving from that frame on (core.eval.moving_protocol's ground truth), greedily by
+score at 3D IoU 0.25 and 0.5 (core.eval.iou3d.iou_3d_across_frames: the boxes' frame is not the ground
+truth's, so the boxes are compared across frames). Printed: precision (matched boxes /
 published boxes) and recall (matched movers / true movers) over the whole run.
 """
 
@@ -108,8 +109,11 @@ def box_accuracy(preset: str, frames: int, lines: list[dict], ious=(0.25, 0.5)) 
         got = np.array([[b[k] for k in ("x", "y", "z", "lx", "ly", "lz", "yaw")]
                         for b in sorted(now["boxes"], key=lambda b: -b["score"])]).reshape(-1, 7)
         gt = np.asarray(gt_moving_boxes(record, t, grid, min_points=10)).reshape(-1, 7)      # in ref_t
-        cam_T_ref = np.linalg.inv(record["world_T_cam"][t, 0].astype(np.float64)) @ record["world_T_ref"][t]
-        overlap = iou_3d_across_frames(got, gt, cam_T_ref)                                    # K×G
+        # the boxes' frame (the camera at frame t, or that levelled with --level) from the ground truth's ref_t
+        world_T_frame = (np.asarray(now["world_T_frame"], np.float64) if now.get("world_T_frame") is not None
+                         else record["world_T_cam"][t, 0].astype(np.float64))
+        frame_T_ref = np.linalg.inv(world_T_frame) @ record["world_T_ref"][t].astype(np.float64)
+        overlap = iou_3d_across_frames(got, gt, frame_T_ref)                                  # K×G
         published += len(got)
         movers += len(gt)
         for iou in ious:
@@ -132,7 +136,8 @@ def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
         ["bridge", "--bundle", str(bundle), "--listen", endpoint, "--bridge-id", f"bench-{preset}",
          "--threads", str(args.threads), "--device", "cpu", "--status-every", "0",
          *([] if args.lookahead else ["--no-lookahead"]),
-         *([] if args.size_prior is None else ["--size-prior", *map(str, args.size_prior)])], work, f"bridge_{preset}")
+         *([] if args.size_prior is None else ["--size-prior", *map(str, args.size_prior)]),
+         *(["--level"] if args.level else [])], work, f"bridge_{preset}")
     listener = camera = None
     try:
         wait_for(lambda: "ready" in bridge_err.read_text() or bridge.poll() is not None, 300, "the bridge")
@@ -195,6 +200,7 @@ def main(argv=None) -> int:
     parser.add_argument("--no-lookahead", dest="lookahead", action="store_false",
                         help="run the bridge without its look-ahead thread (for comparison)")
     parser.add_argument("--drain-s", type=float, default=5.0, help="wait after the last frame before stopping")
+    parser.add_argument("--level", action="store_true", help="the bridge's --level: boxes in the levelled camera")
     parser.add_argument("--size-prior", type=float, nargs=3, default=None, metavar=("L", "W", "H"),
                         help="the bridge's --size-prior (amodal boxes; default: the bridge's default)")
     for name in ("tiny", "small", "paper"):

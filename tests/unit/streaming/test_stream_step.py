@@ -198,13 +198,17 @@ def test_processor_answers_equal_the_reference(bundle_dir, frames):
     assert stats["idle_map_previous"]["count"] >= 2
 
 
-def test_look_ahead_answers_equal_the_reference(bundle_dir, frames):
+@pytest.mark.parametrize("level", [False, True])
+def test_look_ahead_answers_equal_the_reference(bundle_dir, frames, level):
     """The bridge's look-ahead path: each frame's `encode_ahead` (its ego volume and encoding, and the pair's
     egomotion against the frame before) made before its step, as the look-ahead thread does. Answers equal
-    the reference pair; a look-ahead made against another frame than the step's previous one (here: frame
-    3's against frame 1, while its step pairs it with frame 2) has its egomotion ignored, not used."""
+    the reference pair (with `level`, made in the cameras' levelled frames); a look-ahead made against
+    another frame than the step's previous one (here: frame 3's against frame 1, while its step pairs it
+    with frame 2) has its egomotion ignored, not used."""
+    from core.geometry.poses import levelled
+
     runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
-    processor = RuntimeProcessor(runtime, min_score=-1.0)
+    processor = RuntimeProcessor(runtime, min_score=-1.0, level=level)
     state = CameraState()
     views = decoded(frames)
     aheads, boxes_seen = [], 0
@@ -218,7 +222,9 @@ def test_look_ahead_answers_equal_the_reference(bundle_dir, frames):
         got = types_pb2.Detections.FromString(outputs.moving_objects)
         if t > 0:
             pair = pair_of(views[t - 1], frame)
-            slow = reference_moving_objects(runtime.bundle, pair, stabilize="egomotion", dt=STEP_S)
+            refs = ({"world_T_ref0": levelled(pair["world_T_cam0"][:, 0]),
+                     "world_T_ref1": levelled(pair["world_T_cam1"][:, 0])} if level else {})
+            slow = reference_moving_objects(runtime.bundle, pair, stabilize="egomotion", dt=STEP_S, **refs)
             sent = inference_pb2.EgomotionResponse.FromString(outputs.egomotion)
             np.testing.assert_allclose(codecs.tensor_to_numpy(sent.cam0_T_cam1, "cam0_T_cam1"),
                                        slow["cam0_T_cam1"][0], atol=ATOL)
@@ -378,3 +384,37 @@ def test_synthetic_and_recorded_sources_mark_each_scene_start():
     for flag in (True, False):
         view = processor.decode(encode_frame(dict(frame, scene_start=flag), camera_id="c", sequence=0, timestamp=1.0))
         assert view.scene_start is flag
+
+
+def test_levelled_stream_answers_equal_the_reference_in_the_levelled_frames(bundle_dir, frames):
+    """level=True: each frame's map frame is its camera levelled to gravity; the answers equal the reference
+    pair made in those frames, Detections say frame "level" and carry its pose, and an unposed frame is
+    refused (InvalidInput naming world_T_cam)."""
+    from core.geometry.poses import levelled
+
+    runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
+    processor = RuntimeProcessor(runtime, min_score=-1.0, level=True)
+    views = decoded(frames)
+    pitch = np.degrees(np.arcsin(-views[0].world_T_cam[1, 2]))
+    assert abs(pitch) > 3.0  # the synthetic camera looks down: levelling changes the frame
+    state = CameraState()
+    boxes_seen = 0
+    for t, frame in enumerate(views[:4]):
+        got = types_pb2.Detections.FromString(processor.process("c", state, frame).moving_objects)
+        assert got.frame == "level"
+        if t > 0:
+            pair = pair_of(views[t - 1], frame)
+            world_T_ref0, world_T_ref1 = levelled(pair["world_T_cam0"][:, 0]), levelled(pair["world_T_cam1"][:, 0])
+            np.testing.assert_allclose(codecs.tensor_to_numpy(got.world_T_frame, "w"), world_T_ref0[0].numpy(),
+                                       atol=1e-6)
+            slow = reference_moving_objects(runtime.bundle, pair, stabilize="egomotion", dt=STEP_S,
+                                            world_T_ref0=world_T_ref0, world_T_ref1=world_T_ref1)
+            _assert_boxes_equal(got, slow)
+            boxes_seen += len(got.boxes)
+        state.advance(frame)
+        processor.prepare("c", state)
+    assert boxes_seen > 0
+    unposed = make_view(rgb=frames[0]["rgb"], depth=frames[0]["depth"], pix_T_cam=frames[0]["pix_T_cam"], field="frame",
+                        camera_id="c", sequence=9, timestamp=1000.0 + 9 * STEP_S)
+    with pytest.raises(InvalidInput, match="world_T_cam"):
+        processor.step("c", CameraState(), unposed)
