@@ -207,9 +207,10 @@ class Flow3D(nn.Module):
                 raw = cross_correlation_3d(l2_normalize_channels(c0), l2_normalize_channels(warped), self.radius)  # cosines
             else:
                 raw = cross_correlation_3d(c0, warped, self.radius, normalize=True)
-            cost = F.leaky_relu(raw, 0.1)  # B×D×z×y×x
             if self.cost_channels:
                 cost = self.cost_squeeze[level - self.finest](raw)  # B×k×z×y×x
+            else:
+                cost = F.leaky_relu(raw, 0.1)  # B×D×z×y×x
             if self.soft_argmax:
                 up = up + soft_argmax_displacement(raw, self.radius, self.log_beta[level - self.finest].exp())
             flow = up + self.decoders[level - self.finest](torch.cat([cost, c0, up], dim=1))  # B×3×z×y×x

@@ -92,25 +92,21 @@ class MovingStream:
         self._warm: set[tuple] = set()  # (bundle version, image size) pairs already warmed up
 
     # -- the map frame ------------------------------------------------------------------------------
-    def _world_T_ref(self, frame: View, world_T_cam: torch.Tensor) -> torch.Tensor | None:
-        """world_T_ref 1×4×4 of `frame`'s map (world_T_cam: its 1×1×4×4 tensor): its camera levelled, or None
-        (the camera itself). Raises InvalidInput for a frame without a pose when levelling."""
+    def _world_T_ref(self, frame: View) -> torch.Tensor | None:
+        """world_T_ref 1×4×4 (on the runtime's device) of `frame`'s map: its camera levelled, or None (the
+        camera itself). Raises InvalidInput for a frame without a pose when levelling."""
         if not self.level:
             return None
-        self._check_posed(frame)
-        return levelled(world_T_cam[:, 0])
-
-    def _check_posed(self, frame: View) -> None:
-        if self.level and not frame.posed:
+        if not frame.posed:
             raise InvalidInput("frame.world_T_cam", "missing: levelled boxes need each frame's camera pose in a "
                                                     "gravity-aligned world (Y down); run without levelling to "
                                                     "get boxes in the camera's frame")
+        return levelled(torch.from_numpy(frame.world_T_cam)[None]).to(self.runtime.device)  # 1×4×4
 
-    def _world_T_frame(self, frame: View) -> np.ndarray:
-        """The 4×4 pose of `frame`'s map frame in world (Detections.world_T_frame)."""
-        if not self.level:
-            return frame.world_T_cam
-        return levelled(torch.from_numpy(frame.world_T_cam).double()).float().numpy()
+    @staticmethod
+    def _world_T_frame(frame: View, world_T_ref: torch.Tensor | None) -> np.ndarray:
+        """The 4×4 pose in world of `frame`'s map frame (Detections.world_T_frame), given `_world_T_ref(frame)`."""
+        return frame.world_T_cam if world_T_ref is None else world_T_ref[0].cpu().numpy()
 
     # -- the per-camera cache ----------------------------------------------------------------------
     def _cached(self, state: CameraState, sequence: int, version: str) -> FrameEncoding | None:
@@ -134,7 +130,7 @@ class MovingStream:
         timings: dict[str, float] = {}
         tensors = views_tensors([stack_views([previous], "previous")], self.runtime.device)
         with torch.inference_mode():
-            encoding = encode_previous(bundle, **tensors, world_T_ref=self._world_T_ref(previous, tensors["world_T_cam"]),
+            encoding = encode_previous(bundle, **tensors, world_T_ref=self._world_T_ref(previous),
                                        cached=cached, fit_ground=self.config.ground_margin is not None, timings=timings)
         self._remember(state, previous.sequence, version, encoding)
         self._record({f"idle_{k}": v for k, v in timings.items()})
@@ -152,7 +148,7 @@ class MovingStream:
         tensors = views_tensors([stack_views([frame], "frame")], self.runtime.device)
         ego_previous, ego_estimate = None, None
         with torch.inference_mode():
-            world_T_ref1 = self._world_T_ref(frame, tensors["world_T_cam"])
+            world_T_ref1 = self._world_T_ref(frame)
             encoding = encode_previous(bundle, **tensors, world_T_ref=world_T_ref1, evidence=False, features=False,
                                        flow_encoding=False, timings=timings)
             usable = (previous is not None and not frame.scene_start and previous.bundle_version == version
@@ -166,7 +162,7 @@ class MovingStream:
                 world_T_cam0 = world_T_cam0.to(self.runtime.device)
                 ego_estimate = egomotion_from_volumes(
                     bundle.modules["egomotion"], previous.encoding.ego_volume, encoding.ego_volume,
-                    rig_cam_T_ref(world_T_cam0, self._world_T_ref(previous.frame, world_T_cam0)),
+                    rig_cam_T_ref(world_T_cam0, self._world_T_ref(previous.frame)),
                     rig_cam_T_ref(tensors["world_T_cam"], world_T_ref1),
                     features=(previous.encoding.ego_features, encoding.ego_features))
                 ego_previous = previous.frame
@@ -234,18 +230,18 @@ class MovingStream:
             if current is not None:  # but its own-ref work is the next step's frame 0
                 self._remember(state, frame.sequence, version, current)
             self._warm_up(bundle, version, frame)
-            self._check_posed(frame)  # an unposed frame is refused now, not only at its pair
+            world_T_ref = self._world_T_ref(frame)  # an unposed frame is refused now, not only at its pair
             empty = types_pb2.Detections(frame=self.box_frame, bundle_version=version, camera_id=camera,
                                          sequence=frame.sequence, source_timestamp=frame.timestamp,
-                                         world_T_frame=codecs.numpy_to_tensor(self._world_T_frame(frame)))
+                                         world_T_frame=codecs.numpy_to_tensor(
+                                             self._world_T_frame(frame, world_T_ref)))
             return StepAnswer(detections=empty, egomotion=None)
         views0 = stack_views([previous], "previous")
         dt = moving_interval(views0, views1, modules=bundle.modules, frame_dt=self.frame_dt,
                              pose_fields=("frame.world_T_cam", "frame.world_T_cam"), time_field="frame")
         timings: dict[str, float] = {}
         pair = pair_tensors([views0], [views1], self.runtime.device)
-        levels = {"world_T_ref0": self._world_T_ref(previous, pair["world_T_cam0"]),
-                  "world_T_ref1": self._world_T_ref(frame, pair["world_T_cam1"])}
+        levels = {"world_T_ref0": self._world_T_ref(previous), "world_T_ref1": self._world_T_ref(frame)}
         with torch.inference_mode():
             out = moving_step(bundle, **pair, **levels, config=self.config,
                               previous=self._cached(state, previous.sequence, version), current=current,
@@ -262,7 +258,8 @@ class MovingStream:
         # the newest frame.
         detections = detections_proto(moving, frame=self.box_frame, bundle_version=version, views=views1,
                                       ref_views=views0, latency_s=time.perf_counter() - started)
-        detections.world_T_frame.CopyFrom(codecs.numpy_to_tensor(self._world_T_frame(previous)))
+        world_T_frame = self._world_T_frame(previous, levels["world_T_ref0"])
+        detections.world_T_frame.CopyFrom(codecs.numpy_to_tensor(world_T_frame))
         detections.camera_id = camera
         timings["step_total"] = time.perf_counter() - started
         self._record(timings)

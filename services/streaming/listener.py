@@ -16,22 +16,10 @@ import zenoh
 from google.protobuf.message import DecodeError
 
 from n3dmap.v1 import types_pb2
+from services.inference import codecs
+from services.inference.errors import InvalidInput
 from services.streaming import keys
 from services.streaming.session import ZenohOptions, open_session
-
-
-def _world_T_frame(msg: types_pb2.Detections) -> list | None:
-    """Detections.world_T_frame as 4×4 nested lists, or None when absent or not a 4×4 matrix."""
-    from services.inference.codecs import tensor_to_numpy
-    from services.inference.errors import InvalidInput
-
-    if not msg.HasField("world_T_frame"):
-        return None
-    try:
-        matrix = tensor_to_numpy(msg.world_T_frame, "world_T_frame")
-    except InvalidInput:
-        return None
-    return matrix.astype(float).tolist() if matrix.shape == (4, 4) else None
 
 
 def detections_to_json(msg: types_pb2.Detections, *, received_at: float) -> dict:
@@ -42,7 +30,8 @@ def detections_to_json(msg: types_pb2.Detections, *, received_at: float) -> dict
         "boxes": [{"x": b.x, "y": b.y, "z": b.z, "lx": b.lx, "ly": b.ly, "lz": b.lz, "yaw": b.yaw,
                    "score": b.score, "label": b.label, "velocity": [b.vx, b.vy, b.vz]} for b in msg.boxes],
         # the pose of the boxes' frame in the cameras' world (4×4 rows), when the bridge knows it
-        "world_T_frame": _world_T_frame(msg),
+        "world_T_frame": (codecs.tensor_to_numpy(msg.world_T_frame, "world_T_frame").astype(float).tolist()
+                          if msg.HasField("world_T_frame") else None),
     }
 
 
@@ -83,10 +72,11 @@ def listen(*, zenoh_options: ZenohOptions, camera_id: str = "*", max_messages: i
                 msg = types_pb2.Detections()
                 try:
                     msg.ParseFromString(sample.payload.to_bytes())
-                except DecodeError as e:
+                    detections = detections_to_json(msg, received_at=time.time())
+                except (DecodeError, InvalidInput) as e:
                     emit({"error": f"undecodable detections on {sample.key_expr}: {e}"})
                     continue
-                emit(detections_to_json(msg, received_at=time.time()))
+                emit(detections)
                 count += 1
         finally:
             sub.undeclare()
