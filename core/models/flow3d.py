@@ -101,6 +101,35 @@ def level_sizes(size: tuple[int, int, int], levels: int) -> list[tuple[int, int,
     return sizes
 
 
+def aggregate_costs(cost: torch.Tensor, half_widths: tuple[int, int, int]) -> torch.Tensor:
+    """cost B×D×Z×Y×X -> B×D×Z×Y×X, each displacement's cost averaged over the box of ±(ax, ay, az) voxels
+    around each voxel, the box clipped to the grid (the mean of the voxels inside it).
+
+    Why: one voxel's cosines against its ±3 neighbours rarely single out its true shift (measured on the small
+    test records: the best shift of a moving voxel's feature is the true one for ~25 % of them), but an
+    object moves rigidly, so the voxels around it share the shift: summing their costs is stereo's cost
+    aggregation, a parameter-free rigidity prior. As three 1D means (the box's count of voxels inside the grid
+    is the product of the per-axis counts, so it equals the 3D box mean), each a sum of 2a+1 shifted slices of
+    the zero-padded costs: at small (D 63, ±1) 13 ms forward and 24 ms backward against avg_pool3d's 69 / 78.
+    """
+    for dim, a in ((2, half_widths[2]), (3, half_widths[1]), (4, half_widths[0])):
+        if a == 0:
+            continue
+        n = cost.shape[dim]
+        pad = [0] * 6  # F.pad order: (x lo, x hi, y lo, y hi, z lo, z hi)
+        pad[2 * (4 - dim)] = pad[2 * (4 - dim) + 1] = a
+        padded = F.pad(cost, pad)  # B×D×… with 2a more voxels along `dim`
+        total = padded.narrow(dim, 0, n)
+        for k in range(1, 2 * a + 1):
+            total = total + padded.narrow(dim, k, n)  # B×D×Z×Y×X
+        index = torch.arange(n, device=cost.device)
+        inside = (index + a).clamp(max=n - 1) - (index - a).clamp(min=0) + 1  # voxels of each box in the grid
+        shape = [1] * cost.dim()
+        shape[dim] = n
+        cost = total / inside.to(cost.dtype).view(shape)
+    return cost
+
+
 class Flow3D(nn.Module):
     """(f0, f1): B×F×Z×Y×X each -> flow B×3×Z×Y×X (plus the per-level flows, coarse to fine)."""
 
@@ -108,7 +137,8 @@ class Flow3D(nn.Module):
                  radius: tuple[int, int, int] = (1, 1, 1), hidden: int = 32, finest: int = 1,
                  unit_cost: bool = False, soft_argmax: bool = False, beta: float = 10.0,
                  refine: bool = False, inputs: str = "features", zero_bias: float = 0.0,
-                 cost_channels: int = 0, refine_radius: tuple[int, int, int] | None = None) -> None:
+                 cost_channels: int = 0, refine_radius: tuple[int, int, int] | None = None,
+                 refine_aggregate: tuple[int, int, int] = (0, 0, 0)) -> None:
         super().__init__()
         self.zero_bias = float(zero_bias)
         if inputs not in FLOW_INPUTS:
@@ -135,6 +165,11 @@ class Flow3D(nn.Module):
         self.refine_radius = self.radius if refine_radius is None else tuple(int(r) for r in refine_radius)
         if len(self.refine_radius) != 3 or min(self.refine_radius) < 0:
             raise ValueError(f"Flow3D: refine_radius must be three non-negative ints, got {refine_radius}")
+        # Half-widths (x, y, z) of the box over which the grid step averages each displacement's cost before
+        # its soft-argmax ((0, 0, 0): none): stereo's cost aggregation. See `aggregate_costs` for why.
+        self.refine_aggregate = tuple(int(a) for a in refine_aggregate)
+        if len(self.refine_aggregate) != 3 or min(self.refine_aggregate) < 0:
+            raise ValueError(f"Flow3D: refine_aggregate must be three non-negative ints, got {refine_aggregate}")
         self.features = nn.Sequential(
             Conv3d(in_channels, channels, 3, padding=1), nn.LeakyReLU(0.1),
             Conv3d(channels, channels, 3, padding=1))
@@ -170,7 +205,8 @@ class Flow3D(nn.Module):
                 "radius": list(self.radius), "hidden": self.hidden, "finest": self.finest,
                 "unit_cost": self.unit_cost, "soft_argmax": self.soft_argmax, "beta": self.beta,
                 "refine": self.refine, "inputs": self.inputs, "zero_bias": self.zero_bias,
-                "cost_channels": self.cost_channels, "refine_radius": list(self.refine_radius)}
+                "cost_channels": self.cost_channels, "refine_radius": list(self.refine_radius),
+                "refine_aggregate": list(self.refine_aggregate)}
 
     def encode(self, volume: torch.Tensor) -> torch.Tensor:
         """The learned pyramid input of one map or volume: B×Cin×Z×Y×X -> B×C×Z×Y×X. Per example (no
@@ -222,6 +258,7 @@ class Flow3D(nn.Module):
                                        self.refine_radius)
             centre = raw.shape[1] // 2  # d = 0 (z-major order, see core.models.cost_volume.displacements)
             raw[:, centre] += self.refine_zero_bias  # in place: raw is a fresh stack no backward reads
+            raw = aggregate_costs(raw, self.refine_aggregate)  # B×D×Z×Y×X
             flow = up + soft_argmax_displacement(raw, self.refine_radius, self.log_beta[-1].exp())  # B×3×Z×Y×X
             per_level.append(flow)
         return {"flow": upsample_flow(flow, sizes[0]), "levels": per_level}

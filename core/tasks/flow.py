@@ -55,6 +55,7 @@ class FlowTaskConfig:
     radius: tuple[int, int, int] = (1, 1, 1)  # Flow3D.radius: cost-volume window (x, y, z) at every level
     refine_radius: tuple[int, int, int] | None = None  # Flow3D.refine_radius: the grid step's window (None: radius)
     cost_channels: int = 0          # Flow3D.cost_channels: 1×1×1 squeeze of the window costs (0: none)
+    refine_aggregate: tuple[int, int, int] = (0, 0, 0)  # Flow3D.refine_aggregate: grid step's cost box (±x, y, z)
     warp_weight: float = 1.0
     smooth_weight: float = 0.05
     finest: int = 1                 # Flow3D.finest: 1 = PWC's half-resolution last decoder, 0 = on the grid
@@ -108,7 +109,8 @@ class FlowTask(nn.Module):
                            finest=config.finest, inputs=config.inputs, unit_cost=config.unit_cost,
                            soft_argmax=config.soft_argmax, refine=config.refine, beta=config.beta,
                            zero_bias=config.zero_bias, cost_channels=config.cost_channels,
-                           refine_radius=None if config.refine_radius is None else tuple(config.refine_radius))
+                           refine_radius=None if config.refine_radius is None else tuple(config.refine_radius),
+                           refine_aggregate=tuple(config.refine_aggregate))
         self._generator = torch.Generator().manual_seed(config.seed) if config.seed is not None else None
 
     @staticmethod

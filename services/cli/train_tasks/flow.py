@@ -29,6 +29,10 @@ def register(tasks) -> None:
     parser.add_argument("--cost-channels", type=non_negative_int, default=None, metavar="K",
                         help="squeeze the window's costs to K channels (a learned 1x1x1 conv) before each "
                              "decoder, so a wide --radius costs little (default: the task's)")
+    parser.add_argument("--refine-aggregate", type=non_negative_int, nargs=3, default=None,
+                        metavar=("AX", "AY", "AZ"),
+                        help="average the full-grid step's costs over a box of +-AX, AY, AZ voxels before its "
+                             "soft-argmax (cost aggregation; default: the task's)")
     parser.set_defaults(func=_run)
 
 
@@ -44,4 +48,6 @@ def _run(args) -> int:
         options["refine_radius"] = list(args.refine_radius)
     if args.cost_channels is not None:
         options["cost_channels"] = args.cost_channels
+    if args.refine_aggregate is not None:
+        options["refine_aggregate"] = list(args.refine_aggregate)
     return run_train("flow", args, options)

@@ -146,7 +146,61 @@ def test_a_module_saved_before_the_squeeze_and_refine_radius_loads():
     from core.models.registry import build_module
 
     old = Flow3D(in_channels=8, channels=4, levels=2, hidden=8, radius=(2, 1, 2), refine=True, unit_cost=True)
-    config = {k: v for k, v in old.config().items() if k not in ("cost_channels", "refine_radius")}
+    config = {k: v for k, v in old.config().items() if k not in ("cost_channels", "refine_radius", "refine_aggregate")}
     rebuilt = build_module("flow3d", config)
     rebuilt.load_state_dict(old.state_dict(), strict=True)
-    assert rebuilt.refine_radius == (2, 1, 2) and rebuilt.cost_channels == 0
+    assert rebuilt.refine_radius == (2, 1, 2) and rebuilt.cost_channels == 0 and rebuilt.refine_aggregate == (0, 0, 0)
+
+
+def _box_mean_loop(cost: torch.Tensor, half_widths: tuple[int, int, int]) -> torch.Tensor:
+    """Slow reference: every voxel's mean over the voxels of its ±(ax, ay, az) box that lie in the grid."""
+    ax, ay, az = half_widths
+    _, _, Z, Y, X = cost.shape
+    out = torch.empty_like(cost)
+    for z in range(Z):
+        for y in range(Y):
+            for x in range(X):
+                box = cost[:, :, max(0, z - az):z + az + 1, max(0, y - ay):y + ay + 1, max(0, x - ax):x + ax + 1]
+                out[:, :, z, y, x] = box.mean(dim=(2, 3, 4))
+    return out
+
+
+@pytest.mark.parametrize("half_widths", [(1, 1, 1), (2, 0, 1), (0, 0, 0)])
+def test_aggregate_costs_is_the_clipped_box_mean(half_widths):
+    from core.models.flow3d import aggregate_costs
+
+    torch.manual_seed(1)
+    cost = torch.randn(2, 5, 4, 3, 6)
+    torch.testing.assert_close(aggregate_costs(cost, half_widths), _box_mean_loop(cost, half_widths))
+
+
+def test_refine_aggregate_recovers_a_rigid_shift_single_voxels_miss():
+    """A block shifted by (2, 0, 1) voxels in noise-corrupted features: the grid step's box-aggregated costs
+    find the shift at the block's voxels where single-voxel costs are fooled by the noise more often."""
+    torch.manual_seed(0)
+    Z, Y, X, C = 12, 4, 12, 4
+    f0 = torch.randn(1, C, Z, Y, X)
+    f1 = torch.randn(1, C, Z, Y, X)
+    f1[:, :, 4:10, :, 5:11] = f0[:, :, 3:9, :, 3:9]  # block content at (x 3..8, z 3..8) moves by dx 2, dz 1
+    noisy0 = f0 + 1.2 * torch.randn_like(f0)
+
+    def block_error(aggregate):
+        net = Flow3D(in_channels=C, channels=C, levels=1, hidden=4, radius=(0, 0, 0), refine_radius=(2, 0, 2),
+                     unit_cost=True, refine=True, inputs="volume", beta=200.0,
+                     zero_bias=0.0, refine_aggregate=aggregate)
+        with torch.no_grad():  # identity pyramid features: compare the inputs themselves
+            for conv in (net.features[0], net.features[2]):
+                conv.weight.zero_(); conv.bias.zero_()
+            for c in range(C):
+                net.features[0].weight[c, c, 1, 1, 1] = 1.0
+                net.features[2].weight[c, c, 1, 1, 1] = 1.0
+            flow = net(noisy0, f1)["flow"][0]  # 3×Z×Y×X
+        true = torch.tensor([2.0, 0.0, 1.0]).view(3, 1, 1)
+        inner = flow[:, 4:8, :, 4:8]  # block voxels away from its edges: 3×4×Y×4
+        return (inner - true.view(3, 1, 1, 1)).abs().sum(0).mean()
+
+    single, boxed = block_error((0, 0, 0)), block_error((1, 1, 1))
+    assert boxed < 0.5 * single and boxed < 0.3
+    assert Flow3D(in_channels=4, inputs="volume", refine_aggregate=(1, 0, 1)).config()["refine_aggregate"] == [1, 0, 1]
+    with pytest.raises(ValueError, match="refine_aggregate"):
+        Flow3D(in_channels=4, inputs="volume", refine_aggregate=(1, -1, 1))

@@ -121,3 +121,7 @@ def test_flow_radius_reaches_the_task_options(tmp_path, monkeypatch):
     seen.clear()
     assert main(base + ["--radius", "3", "1", "3", "--refine-radius", "1", "1", "1", "--cost-channels", "16"]) == 0
     assert seen["radius"] == [3, 1, 3] and seen["refine_radius"] == [1, 1, 1] and seen["cost_channels"] == 16
+    assert "refine_aggregate" not in seen
+    seen.clear()
+    assert main(base + ["--refine-aggregate", "1", "0", "1"]) == 0
+    assert seen["refine_aggregate"] == [1, 0, 1]
