@@ -4,7 +4,8 @@
 passed in when a stream kept it from the step before), the egomotion estimate when asked for or needed,
 stabilisation (core.pipeline.stabilise: frame 1 re-lifted straight into ref0 with the estimate, the poses
 or not at all), and the flow module. Flow of voxels the bundle's occupancy head calls free
-(P(occupied) < `occupancy_threshold`) is set to zero (the paper's test-time rule); without an occupancy
+(P(occupied) < `occupancy_threshold`) is set to zero (the paper's test-time rule), except, with `gate_fill`
+> 0, within that many voxels of a moving occupied voxel (core.pipeline.flow_gate); without an occupancy
 module the raw flow is returned. `estimate_flow` is the step without a cache, and moving objects
 (core.pipeline.moving) add boxes to it. `ref_t` is `world_T_ref0/1` when given, else the camera of view 0
 (see core.pipeline.egomotion).
@@ -21,6 +22,7 @@ from core.geometry.poses import rig_cam_T_ref
 from core.models.egomotion_inputs import egomotion_input_volume, fused_input_volume
 from core.pipeline.egomotion import egomotion_from_volumes
 from core.pipeline.encoding import FrameEncoding, Stopwatch, binary_volume, encode_previous
+from core.pipeline.flow_gate import GATE_FILL, gate_flow
 from core.pipeline.stabilise import STABILISE, identity_like, poses_ref0_T_ref1, resolve_stabilise
 
 __all__ = ["STABILISE", "estimate_flow", "flow_pair", "flow_step"]
@@ -48,7 +50,7 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
               current: FrameEncoding | None = None, ego_estimate: dict[str, torch.Tensor] | None = None,
               stabilize: str | None = None, egomotion: bool = True, evidence: bool = False,
               fit_ground: bool = True, occupancy_threshold: float = 0.5, features0: bool | None = None,
-              timings: dict[str, float] | None = None) -> dict:
+              gate_fill: int = GATE_FILL, timings: dict[str, float] | None = None) -> dict:
     """Inputs as `estimate_egomotion`, plus `previous`: frame 0's FrameEncoding kept from the step before
     (or None); current: frame 1's own-ref FrameEncoding when the caller made it already (a stream encodes
     each frame as it arrives, beside the step before; only its ego volume and encoding are read here);
@@ -57,7 +59,8 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
     stabilize: "egomotion", "poses", "none" or None (egomotion when the bundle has it);
     egomotion: also estimate cam0_T_cam1 when the bundle can (stabilize="egomotion" always does);
     evidence / fit_ground: make frame 0's FrameEvidence (boxes need it); features0: make frame 0's mapper
-    map even when nothing here reads it (None: only when needed, core.pipeline.encoding.needs_map).
+    map even when nothing here reads it (None: only when needed, core.pipeline.encoding.needs_map);
+    occupancy_threshold, gate_fill: the occupancy gate (core.pipeline.flow_gate.gate_flow's threshold, fill).
 
     Returns {"flow": B×3×Z×Y×X (free voxels zeroed), "flow_raw", "ref0_T_ref1": B×4×4 used to stabilise,
     "cam0_T_cam1": B×4×4 (only when the egomotion module ran), "features1": B×F×Z×Y×X in ref0 (only for a
@@ -108,7 +111,8 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
                               cam_T_ref0=(cam_T_ref0, cam1_T_ref0),
                               volumes=(v0, None)),
                    encoded0=enc0.flow_encoded)["flow"]  # B×3×Z×Y×X
-    flow = raw if enc0.occupancy is None else raw * (enc0.occupancy >= occupancy_threshold).to(raw.dtype)
+    flow = raw if enc0.occupancy is None else gate_flow(raw, enc0.occupancy, threshold=occupancy_threshold,
+                                                         fill=gate_fill)
     watch.lap("flow")
     out.update(flow=flow, flow_raw=raw, ref0_T_ref1=ref0_T_ref1)
     return out
@@ -119,7 +123,8 @@ def estimate_flow(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam
                   world_T_cam0: torch.Tensor, rgb1: torch.Tensor, depth1: torch.Tensor,
                   pix_T_cam1: torch.Tensor, world_T_cam1: torch.Tensor,
                   world_T_ref0: torch.Tensor | None = None, world_T_ref1: torch.Tensor | None = None,
-                  stabilize: str = "poses", occupancy_threshold: float = 0.5) -> dict[str, torch.Tensor]:
+                  stabilize: str = "poses", occupancy_threshold: float = 0.5,
+                  gate_fill: int = GATE_FILL) -> dict[str, torch.Tensor]:
     """`flow_step` without a cache. Inputs as `estimate_egomotion`; stabilize "poses" (default),
     "egomotion" or "none". Returns `flow` B×3×Z×Y×X (free voxels zeroed), `flow_raw`, `ref0_T_ref1` B×4×4
     used for stabilisation, `features0` B×F×Z×Y×X (frame 0's map in ref0), `features1` (frame 1's,
@@ -128,7 +133,7 @@ def estimate_flow(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam
     out = flow_step(bundle, rgb0=rgb0, depth0=depth0, pix_T_cam0=pix_T_cam0, world_T_cam0=world_T_cam0,
                     rgb1=rgb1, depth1=depth1, pix_T_cam1=pix_T_cam1, world_T_cam1=world_T_cam1,
                     world_T_ref0=world_T_ref0, world_T_ref1=world_T_ref1, stabilize=stabilize, egomotion=False,
-                    occupancy_threshold=occupancy_threshold, features0=True)
+                    occupancy_threshold=occupancy_threshold, gate_fill=gate_fill, features0=True)
     enc0 = out["previous"]
     result = {k: out[k] for k in ("flow", "flow_raw", "ref0_T_ref1", "features1") if k in out}
     result["features0"] = enc0.features

@@ -72,7 +72,7 @@ def test_eval_flow_report(setup):
     out = root / "flow_report"
     _run(root, "flow", "--out", str(out), "--max-records", "2")
     m = json.loads((out / "metrics.json").read_text())["metrics"]["flow"]
-    assert set(m) == {"model", "model_raw", "zero_motion"}
+    assert set(m) == {"model", "model_filled", "model_raw", "zero_motion"}
     gts = [gt_flow(r, 0, TINY.grid) for r in records]
     l1 = torch.cat([g.abs().sum(0).flatten() for g in gts])
     moving = torch.cat([(g.norm(dim=0) > 1e-3).flatten() for g in gts])

@@ -3,7 +3,9 @@
 Each record contributes its consecutive pairs. Frame t+1 is registered into ref_t with the record poses
 (so the numbers isolate the flow module from egomotion error, as the paper did). Rows: the model with
 free voxels zeroed by the bundle's occupancy head (the paper's test-time rule; raw when there is none),
-the model's raw flow, and the zero-motion baseline. L1 EPE over all voxels split full/static/moving;
+"model_filled": the same gate opened one voxel around moving occupied voxels (core.pipeline.flow_gate,
+fill 1: the unseen inside of a moving object keeps its flow; raw when there is no occupancy head), the
+model's raw flow, and the zero-motion baseline. L1 EPE over all voxels split full/static/moving;
 EPE3D/Acc3DS/Acc3DR/outliers on the labelled occupied voxels of frame t (definitions:
 core.eval.flow_metrics).
 """
@@ -17,9 +19,11 @@ from core.errors import DataError
 from core.eval import flow_metrics as fm
 from core.eval.protocols.inputs import pair_inputs, record_batch
 from core.pipeline.flow import estimate_flow
+from core.pipeline.flow_gate import gate_flow
 
 NEEDS = ("mapper", "flow")
-ROWS = ("model", "model_raw", "zero_motion")
+ROWS = ("model", "model_filled", "model_raw", "zero_motion")
+FILLED_GATE = 1  # voxels the "model_filled" row's gate opens around moving occupied voxels
 
 
 def evaluate(bundle, records, *, device, moving_threshold: float, recorder=None) -> dict:
@@ -39,7 +43,10 @@ def evaluate(bundle, records, *, device, moving_threshold: float, recorder=None)
             out = estimate_flow(bundle, **pair_inputs(batch, t, t + 1))
             gt = gt_flow(record, t, grid)[None].to(device)  # 1×3×Z×Y×X
             occupied = gt_occupancy(record, t, grid)[None].to(device) > 0.5  # 1×1×Z×Y×X
-            preds = {"model": out["flow"], "model_raw": out["flow_raw"], "zero_motion": torch.zeros_like(gt)}
+            filled = out["flow_raw"] if "occupancy" not in out else gate_flow(
+                out["flow_raw"], out["occupancy"], fill=FILLED_GATE)
+            preds = {"model": out["flow"], "model_filled": filled, "model_raw": out["flow_raw"],
+                     "zero_motion": torch.zeros_like(gt)}
             for row, pred in preds.items():
                 sums[row] = fm.add_sums(sums[row], fm.flow_error_sums(
                     pred.float(), gt, occupied=occupied, moving_threshold=moving_threshold))

@@ -49,7 +49,10 @@ def run(args) -> int:
                               "occupancy_masking": "occupancy" in bundle.modules})
     report.metrics = {"flow": scores}
     report.text("Mean L1 endpoint error in voxels (Σ over x, y, z of |pred − gt|), egomotion-stabilised with "
-                "the record poses; `moving` = voxels whose true flow exceeds the threshold.")
+                "the record poses; `moving` = voxels whose true flow exceeds the threshold. Rows: `model` zeroes "
+                "the flow of voxels the occupancy head calls free (the paper's rule), `model_filled` keeps it "
+                "within one voxel of a moving occupied voxel (an object's unseen inside), `model_raw` gates "
+                "nothing.")
     report.table(["method", "full", "static", "moving"],
                  [[row, s["epe_l1_full"], s["epe_l1_static"], s["epe_l1_moving"]] for row, s in scores.items()])
     report.heading("Scene-flow scores on occupied voxels")
