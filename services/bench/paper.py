@@ -176,6 +176,7 @@ def _check_same_plan(path: Path, config: BenchConfig) -> None:
     if path.exists():
         earlier = {k: v for k, v in json.loads(path.read_text()).items() if k not in ("seeds", "workers", "device")}
         earlier.setdefault("precision", "fp32")  # plans written before the option trained in fp32
+        earlier.setdefault("task_options", {})  # plans written before the option ran the tasks' defaults
         if earlier != current:
             changed = sorted(k for k in set(earlier) | set(current) if earlier.get(k) != current.get(k))
             raise BenchConfigError(f"{path.parent.parent} holds a benchmark with another plan "
@@ -231,7 +232,8 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
         return json.loads((stage_dir / EVAL_MARKER).read_text())
 
     pretrained = {arm: train(f"pretrain_{arm}", task="pretrain", rule=rules.pretrain,
-                             task_options={"objective": arm}) for arm in PRETRAINED_ARMS}
+                             task_options=config.stage_options("pretrain", {"objective": arm}))
+                  for arm in PRETRAINED_ARMS}
     result: dict = {"detection": {}, "retrieval": {}, "occupancy": {}, "flow": {}}
 
     # Detection: every variant at every label budget.
@@ -240,7 +242,8 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
             name = detector_stage(arm, mode, budget)
             frozen = mode == "frozen"
             bundle_dir = train(name, task="detector", rule=rules.detector, label_budget=budget,
-                               task_options={"labels": None, "freeze_features": frozen},
+                               task_options=config.stage_options(
+                                   "detector", {"labels": None, "freeze_features": frozen}),
                                init_bundle=pretrained.get(arm), freeze=("mapper",) if frozen else (),
                                batch_size=min(config.batch_size or preset.train.batch_size,
                                               config.budget_records(budget)))
@@ -269,10 +272,12 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
     # volumes (it does not depend on the pretraining; the contrastive bundle gives it the occupancy
     # head). All are scored against the zero-motion row.
     from core.eval.protocols import flow as flow_protocol
-    flows = {arm: train(f"flow_{arm}", task="flow", rule=rules.flow, task_options={"inputs": "features"},
+    flows = {arm: train(f"flow_{arm}", task="flow", rule=rules.flow,
+                        task_options=config.stage_options("flow_features", {"inputs": "features"}),
                         init_bundle=pretrained[arm], freeze=("mapper",)) for arm in PRETRAINED_ARMS}
     flows[VOLUME_FLOW] = train(f"flow_{VOLUME_FLOW}", task="flow", rule=rules.flow,
-                               task_options={"inputs": "volume"}, init_bundle=pretrained["contrastive"],
+                               task_options=config.stage_options("flow_volume", {"inputs": "volume"}),
+                               init_bundle=pretrained["contrastive"],
                                freeze=("mapper",))
     for arm in (*PRETRAINED_ARMS, VOLUME_FLOW):
         result["flow"][arm] = evaluate(f"flow/{arm}", lambda a=arm: flow_protocol.evaluate(

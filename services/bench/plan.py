@@ -12,7 +12,12 @@ single fields (`dataclasses.replace`). The plan fixes, for the whole benchmark:
   the detector trains a fixed number of epochs over its labelled records (bounded);
 - label budgets: numbers of labelled training records the detector gets (None = all of them);
 - the detector variants: (pretraining arm, "frozen" | "finetuned") pairs; the random-init arm is
-  trained end to end (frozen random features measure nothing the paper reports).
+  trained end to end (frozen random features measure nothing the paper reports);
+- `task_options`: extra task options per kind of stage (TASK_OPTION_KINDS), on top of the tasks'
+  defaults, for running the benchmark with a recipe other than the defaults (e.g. pretraining's matching
+  term and a wider flow window): "mapper" goes to every stage that builds a mapper (pretraining, detector,
+  flow; e.g. `encoder_full_res`, which they must all agree on), the others to their stages. The options that
+  define the benchmark's arms (PROTOCOL_OPTIONS) cannot be set this way.
 
 `quick=True` is the test profile: a handful of records and 2 fixed steps per stage, so the whole
 pipeline runs in well under a minute on a 2-core CPU (numbers are then meaningless, only complete, and
@@ -21,7 +26,7 @@ the report gives no verdicts).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 
 from core.errors import N3dmapError
 from services.bench.stopping import StageRule
@@ -34,6 +39,12 @@ DEFAULT_VARIANTS: tuple[tuple[str, str], ...] = (
     ("regression", "frozen"), ("regression", "finetuned"),
     ("contrastive", "frozen"), ("contrastive", "finetuned"),
 )
+
+
+# Kinds of stage `BenchConfig.task_options` may give options to ("mapper": every stage that builds one).
+TASK_OPTION_KINDS = ("mapper", "pretrain", "detector", "flow_features", "flow_volume")
+# Options the benchmark sets itself to define its arms and protocol.
+PROTOCOL_OPTIONS = ("objective", "inputs", "labels", "freeze_features")
 
 
 class BenchConfigError(N3dmapError):
@@ -85,6 +96,7 @@ class BenchConfig:
     flow2d_threshold_px: float = 1.0           # 2.5D baseline: pixels of 2D flow that count as motion
     flow2d_min_pixels: int = 20                # 2.5D baseline: smaller 2D clusters are dropped
     quick: bool = False
+    task_options: dict = field(default_factory=dict)  # {kind in TASK_OPTION_KINDS: {option: value}}
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "seeds", tuple(int(s) for s in self.seeds))
@@ -111,6 +123,22 @@ class BenchConfig:
             raise BenchConfigError(f"precision must be fp32 or bf16, got {self.precision!r}")
         if self.retrieval_per_example < 1 or self.retrieval_cube < 1 or self.retrieval_cube % 2 == 0:
             raise BenchConfigError("retrieval needs >= 1 pair per example and an odd cube size")
+        if not isinstance(self.task_options, dict):
+            raise BenchConfigError(f"task_options must map a stage kind to options, got {self.task_options!r}")
+        for kind, options in self.task_options.items():
+            if kind not in TASK_OPTION_KINDS:
+                raise BenchConfigError(f"task_options: unknown stage kind {kind!r}; choose from {TASK_OPTION_KINDS}")
+            if not isinstance(options, dict):
+                raise BenchConfigError(f"task_options[{kind!r}] must be an object of task options, got {options!r}")
+            fixed = sorted(set(options) & set(PROTOCOL_OPTIONS))
+            if fixed:
+                raise BenchConfigError(f"task_options[{kind!r}] sets {fixed}: the benchmark sets those itself "
+                                       "(they define its arms)")
+
+    def stage_options(self, kind: str, protocol: dict) -> dict:
+        """Task options of a stage of `kind` ("pretrain", "detector", "flow_features", "flow_volume"):
+        the plan's "mapper" options, then the kind's own, then the benchmark's `protocol` options."""
+        return {**self.task_options.get("mapper", {}), **self.task_options.get(kind, {}), **protocol}
 
     @property
     def budgets_sorted(self) -> tuple[int | None, ...]:
@@ -134,6 +162,7 @@ class BenchConfig:
         """Inverse of to_dict (a seed worker process rebuilds the plan from OUT/work/plan.json)."""
         d = dict(d)
         d["rules"] = StageRules.from_dict(d["rules"])
+        d.setdefault("task_options", {})  # plans written before the field
         d["label_budgets"] = tuple(None if b == "all" else int(b) for b in d["label_budgets"])
         d["detector_variants"] = tuple(tuple(v) for v in d["detector_variants"])
         d["seeds"] = tuple(d["seeds"])

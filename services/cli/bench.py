@@ -11,6 +11,7 @@ services/bench/paper.py for the stages and services/bench/plan.py for the per-pr
 from __future__ import annotations
 
 import argparse
+import json
 
 def _positive_int(text: str) -> int:
     try:
@@ -65,7 +66,22 @@ def register(subparsers) -> None:
                    help="every training stage's `n3dmap train --precision` (default fp32; see its help)")
     p.add_argument("--threads", type=_positive_int, default=None,
                    help="torch threads per process instead of the plan's share of the CPUs (may oversubscribe)")
+    p.add_argument("--task-options", type=_task_options, default=None, metavar="JSON",
+                   help='extra task options per kind of stage, e.g. \'{"mapper": {"encoder_full_res": 16}, '
+                        '"pretrain": {"coeff_match": 1.0}, "flow_features": {"refine_radius": [3, 1, 3]}}\' '
+                        '(kinds: mapper, pretrain, detector, flow_features, flow_volume; default: none)')
     p.set_defaults(func=run)
+
+
+def _task_options(text: str) -> dict:
+    """--task-options: a JSON object (checked further by BenchConfig)."""
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise argparse.ArgumentTypeError(f"not JSON ({e.msg} at character {e.pos})") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError("must be a JSON object mapping a stage kind to task options")
+    return value
 
 
 def config_from_args(args: argparse.Namespace):
@@ -74,7 +90,7 @@ def config_from_args(args: argparse.Namespace):
     overrides = {k: v for k, v in {
         "train_episodes": args.train_episodes, "test_episodes": args.test_episodes,
         "label_budgets": tuple(args.label_budgets) if args.label_budgets else None,
-        "batch_size": args.batch_size}.items() if v is not None}
+        "batch_size": args.batch_size, "task_options": args.task_options}.items() if v is not None}
     config = plan_for(args.preset, seeds=tuple(range(args.seeds)), quick=args.quick, data_seed=args.data_seed,
                       workers=args.workers, device=args.device, precision=args.precision, **overrides)
     steps = {s: getattr(args, f"{s}_steps") for s in ("pretrain", "detector", "flow", "egomotion")}

@@ -8,6 +8,10 @@ alias --amp), then the largest grid (paper grid scaled up in steps) whose full s
 
     python tests/benchmarks/bench_train_step.py --device cpu --preset tiny --steps 5
     python tests/benchmarks/bench_train_step.py --device cuda --preset paper --precision bf16 --steps 20
+    python tests/benchmarks/bench_train_step.py --device cpu --preset small --widths 64 32 32 --threads 1
+
+--widths W F E replaces the preset's encoder width, feature channels F and embedding channels E (the
+paper's are 64 32 32; small's 16 16 16), to price the paper's model on a preset's grid.
 
 Per-task mode (--tasks, CPU only, presets tiny and small; --preset all = both): for each (task,
 preset) row, every task of core.tasks.build_task (pretrain = contrastive, pretrain_regression =
@@ -279,6 +283,8 @@ def main(argv=None) -> None:
     ap.add_argument("--batch-size", type=int, default=None, help="default: the preset's")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's; per-task mode: 1)")
     ap.add_argument("--largest-grid", action="store_true", help="CUDA: also search the largest grid that fits")
+    ap.add_argument("--widths", type=int, nargs=3, default=None, metavar=("W", "F", "E"),
+                    help="pretraining mode: encoder width, feature and embedding channels instead of the preset's")
     ap.add_argument("--tasks", nargs="?", const="all", default=None,
                     help="per-task mode (CPU): comma-separated tasks of " + ",".join(TASK_VARIANTS) +
                          " or 'all' (the default when --tasks has no value); --preset tiny | small | all")
@@ -307,8 +313,12 @@ def main(argv=None) -> None:
     print(f"device {dev_name}, torch {torch.__version__}, precision {args.precision}, objective={args.objective}")
     for name in names:
         preset = get_preset(name)
+        if args.widths:
+            width, features, embed = args.widths
+            preset = preset.with_overrides(encoder_width=width, feature_dim=features, embed_dim=embed)
+            name = f"{name} (widths {width}/{features}/{embed})"
         bs = args.batch_size or preset.train.batch_size
-        if name == "paper" and not args.device.startswith("cuda"):
+        if preset.name == "paper" and not args.device.startswith("cuda"):
             r = bench_encoder(preset.grid.shape_zyx, device=args.device, steps=args.steps, amp=args.amp,
                               width=preset.encoder_width)
             print(f"paper 3D encoder fwd+bwd {preset.grid.Z}x{preset.grid.Y}x{preset.grid.X}x4 batch 1: "

@@ -1,5 +1,5 @@
-"""`n3dmap bench paper --preset tiny --quick` as a real process, two seeds in two worker processes:
-every stage runs, the report holds every table and metrics.json every key, each claim is stated with
+"""`n3dmap bench paper --preset tiny --quick` as a real process, two seeds in two worker processes, with
+per-stage task options (--task-options, reaching every stage they name): every stage runs, the report holds every table and metrics.json every key, each claim is stated with
 its numbers per seed, the thread plan is printed and fits the CPUs, and a rerun skips every finished
 stage (resume). The quick profile trains for 2 steps per stage, so its report must give no verdicts:
 every claim is "not judged" with `holds: null`.
@@ -28,9 +28,14 @@ CLAIMS = ("detection_few_labels", "detection_more_labels", "detection_gain_low_d
           "moving_static_vs_regression", "moving_camera_stabilised", "occupancy_accuracy", "egomotion_vs_icp")
 
 
+TASK_OPTIONS = {"mapper": {"encoder_full_res": 4}, "pretrain": {"coeff_match": 0.5},
+                "flow_features": {"refine_radius": [2, 1, 2], "refine_aggregate": [1, 1, 1]}}
+
+
 def _bench(out: Path) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "services.cli.main", "bench", "paper", "--preset", "tiny", "--quick",
-           "--seeds", "2", "--parallel-seeds", "2", "--out", str(out), "--device", "cpu"]
+           "--seeds", "2", "--parallel-seeds", "2", "--out", str(out), "--device", "cpu",
+           "--task-options", json.dumps(TASK_OPTIONS)]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return proc
@@ -96,6 +101,16 @@ def test_metrics_json_has_every_key(bench_run):
     for arm, inputs in (("contrastive", "features"), ("regression", "features"), ("volume", "volume")):
         bundle = json.loads((out / "work" / "seed0" / f"flow_{arm}" / "bundle" / "bundle.json").read_text())
         assert bundle["modules"]["flow"]["config"]["inputs"] == inputs
+        # --task-options: the mapper option reaches every stage that builds a mapper, the flow_features
+        # options only the arms' flow stages
+        assert bundle["modules"]["mapper"]["config"]["full_res"] == 4
+        assert (bundle["modules"]["flow"]["config"]["refine_aggregate"] == [1, 1, 1]) == (inputs == "features")
+    assert metrics["config"]["task_options"] == TASK_OPTIONS
+    for stage in ("pretrain_contrastive", "detector_contrastive_frozen_L2"):
+        bundle = json.loads((out / "work" / "seed1" / stage / "bundle" / "bundle.json").read_text())
+        assert bundle["modules"]["mapper"]["config"]["full_res"] == 4, stage
+    pretrain = json.loads((out / "work" / "seed0" / "pretrain_regression" / "bundle" / "bundle.json").read_text())
+    assert pretrain["provenance"]["coeff_match"] == 0.5
     # Every stage left its timing, and the per-seed raw results are kept.
     assert all(s >= 0 for s in metrics["stage_seconds"].values())
     assert set(metrics["per_seed"]) == {"0", "1"}

@@ -1,0 +1,76 @@
+"""BenchConfig.task_options: per-stage-kind task options of `bench paper`, checked, merged and recorded."""
+
+import json
+
+import pytest
+
+from services.bench.paper import _check_same_plan
+from services.bench.plan import BenchConfig, BenchConfigError, plan_for
+from services.cli.main import main
+
+OPTIONS = {"mapper": {"encoder_full_res": 16}, "pretrain": {"coeff_match": 1.0},
+           "flow_features": {"refine_radius": [3, 1, 3], "encoder_full_res": 8}}
+
+
+def test_stage_options_merge_mapper_then_kind_then_protocol():
+    config = plan_for("tiny", quick=True, task_options=OPTIONS)
+    assert config.stage_options("pretrain", {"objective": "contrastive"}) == {
+        "encoder_full_res": 16, "coeff_match": 1.0, "objective": "contrastive"}
+    # the kind's own value wins over the mapper's; the protocol's are added last
+    assert config.stage_options("flow_features", {"inputs": "features"}) == {
+        "encoder_full_res": 8, "refine_radius": [3, 1, 3], "inputs": "features"}
+    assert config.stage_options("flow_volume", {"inputs": "volume"}) == {"encoder_full_res": 16, "inputs": "volume"}
+    assert plan_for("tiny", quick=True).stage_options("detector", {"labels": None}) == {"labels": None}
+
+
+def test_task_options_round_trip_and_old_plans_read_as_none():
+    config = plan_for("tiny", quick=True, task_options=OPTIONS)
+    assert BenchConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
+    old = plan_for("tiny", quick=True).to_dict()
+    del old["task_options"]
+    assert BenchConfig.from_dict(old).task_options == {}
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"flow": {"radius": [2, 1, 2]}}, "unknown stage kind 'flow'"),
+    ({"pretrain": [1]}, "must be an object"),
+    ({"pretrain": {"objective": "regression"}}, "'objective'"),
+    ({"flow_features": {"inputs": "volume"}}, "'inputs'"),
+])
+def test_bad_task_options_are_refused_by_name(options, message):
+    with pytest.raises(BenchConfigError, match=message):
+        plan_for("tiny", quick=True, task_options=options)
+
+
+def test_a_rerun_must_keep_the_task_options(tmp_path):
+    plan = tmp_path / "work" / "plan.json"
+    plan.parent.mkdir(parents=True)
+    plain = plan_for("tiny", quick=True)
+    old = plain.to_dict()
+    del old["task_options"]  # written before the option existed: the tasks' defaults
+    plan.write_text(json.dumps(old))
+    _check_same_plan(plan, plain)
+    with pytest.raises(BenchConfigError, match="task_options"):
+        _check_same_plan(plan, plan_for("tiny", quick=True, task_options=OPTIONS))
+
+
+def test_cli_task_options_reach_the_plan_and_bad_json_names_the_flag(tmp_path, monkeypatch, capsys):
+    import services.bench.paper as paper
+
+    seen = {}
+
+    def fake_run(config, out, **kw):
+        seen["config"] = config
+        return {"claims": []}
+
+    monkeypatch.setattr(paper, "run_paper_bench", fake_run)
+    base = ["bench", "paper", "--quick", "--seeds", "1", "--out", str(tmp_path / "r")]
+    assert main(base + ["--task-options", json.dumps(OPTIONS)]) == 0
+    assert seen["config"].task_options == OPTIONS
+    for bad, why in (("{not json", "not JSON"), ("[1, 2]", "JSON object")):
+        with pytest.raises(SystemExit) as stop:
+            main(base + ["--task-options", bad])
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and "--task-options" in err and why in err
+    assert main(base + ["--task-options", '{"flow": {}}']) != 0  # a BenchConfigError: one line, no traceback
+    assert "unknown stage kind 'flow'" in capsys.readouterr().err
