@@ -62,3 +62,23 @@ def levelled(world_T_cam: torch.Tensor) -> torch.Tensor:
     world_T_level[..., :3, 3] = world_T_cam[..., :3, 3]
     world_T_level[..., 3, 3] = 1.0
     return world_T_level
+
+
+def level_over_ground(world_T_cam: torch.Tensor, *, ahead: float = 0.0, ground_y: float | None = None,
+                      origin_height: float = 0.0) -> torch.Tensor:
+    """`levelled(world_T_cam)` moved to where a map of the scene in front of the camera belongs:
+    `ahead` metres along its heading, and, given the world's ground plane Y = `ground_y` (Y down), at
+    `origin_height` metres above the ground (its Y = ground_y − origin_height); without `ground_y` it
+    stays at the camera's height. world_T_cam ...×4×4 -> world_T_ref ...×4×4 (axes as `levelled`).
+
+    Why: a camera-centred grid holds what is around the camera; the training grids hold a scene seen
+    from 12–20 m away with the ground `Preset.ground_y` below their centre. A camera 5 m up looking at a
+    street 18 m ahead leaves the street out of a camera-centred levelled grid (measured: stream recall at
+    IoU 0.25 0.21 tilted, 0.12 levelled).
+    """
+    world_T_ref = levelled(world_T_cam).clone()
+    heading = world_T_ref[..., :3, 2]  # ...×3, horizontal unit vector
+    world_T_ref[..., :3, 3] = world_T_ref[..., :3, 3] + float(ahead) * heading
+    if ground_y is not None:
+        world_T_ref[..., 1, 3] = float(ground_y) - float(origin_height)
+    return world_T_ref

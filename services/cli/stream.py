@@ -48,6 +48,13 @@ def register(subparsers) -> None:
                              "centre and heading, Y down) instead of the camera itself: upright boxes, a level "
                              "ground. Needs every frame's world_T_cam in a world whose Y points down (the "
                              "synthetic world's and n3dmap's datasets'); a frame without one counts as malformed")
+    bridge.add_argument("--level-ahead", type=non_negative_float, default=0.0, metavar="M",
+                        help="with --level: centre each map M metres ahead of the camera along its heading "
+                             "(default 0: on the camera; the training grids sit 12-20 m from their cameras)")
+    bridge.add_argument("--ground-y", type=float, default=None, metavar="Y",
+                        help="with --level: the world's ground plane is Y = this (Y down); each map's centre then "
+                             "sits the bundle preset's ground height above it, as in training (the synthetic "
+                             "world's ground: 2.0; default: at the camera's height)")
     bridge.add_argument("--no-lookahead", dest="lookahead", action="store_false",
                         help="one worker thread only: no look-ahead thread encoding the next frame and its "
                              "egomotion beside the current step (that thread is what lets the small preset "
@@ -140,6 +147,8 @@ def _run_bridge(args: argparse.Namespace) -> int:
     from services.streaming.bridge import Bridge
     from services.streaming.processor import RuntimeProcessor
 
+    if not args.level and (args.level_ahead or args.ground_y is not None):
+        raise CliError("--level-ahead and --ground-y place the levelled map frame: add --level")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
     options = _zenoh_options(args, default_listen=True)
     runtime = Runtime(RuntimeConfig(bundle_dir=args.bundle, device=args.device,
@@ -149,7 +158,7 @@ def _run_bridge(args: argparse.Namespace) -> int:
 
         prior = None if args.size_prior is None else SizePrior.from_size(*args.size_prior)
         processor = RuntimeProcessor(runtime, min_score=args.min_score, frame_dt=args.frame_dt, size_prior=prior,
-                                     level=args.level)
+                                     level=args.level, level_ahead=args.level_ahead, ground_y=args.ground_y)
     except ValueError as e:
         raise CliError(str(e)) from None
     warm_s = processor.warm_up()  # before "ready": the first frames do not pay the models' one-time costs

@@ -26,7 +26,7 @@ import torch
 
 from core.moving.amodal import SizePrior
 from core.pipeline import encode_previous, moving_step
-from core.geometry.poses import levelled, rig_cam_T_ref
+from core.geometry.poses import level_over_ground, rig_cam_T_ref
 from core.pipeline.egomotion import egomotion_from_volumes
 from core.pipeline.encoding import FrameEncoding, is_complete
 from core.pipeline.moving_boxes import MovingObjectsConfig
@@ -70,14 +70,18 @@ class MovingStream:
     and `prepare` from one thread at a time (the bridge's worker, or the runtime's model thread)."""
 
     def __init__(self, runtime, *, min_score: float, frame_dt: float, size_prior: SizePrior | None = None,
-                 reuse: bool = True, level: bool = False) -> None:
+                 reuse: bool = True, level: bool = False, level_ahead: float = 0.0,
+                 ground_y: float | None = None) -> None:
         """min_score: boxes scored below it are dropped; frame_dt: seconds per sequence number for frames
         without timestamps; size_prior: amodal boxes of this object size (core.moving.amodal), or None for
         visible boxes; reuse: False encodes the previous frame again every step (for comparisons);
         level: each frame's map frame is its camera levelled to gravity (core.geometry.poses.levelled: the
         frames' world_T_cam must be given, in a world whose Y points down), so boxes are upright and the
         ground is level; the Detections say frame "level" and carry its pose in world_T_frame. Otherwise the
-        map frame is the camera itself (frame "ref")."""
+        map frame is the camera itself (frame "ref"). With `level`: level_ahead moves the map frame that many
+        metres along the camera's heading, and ground_y (the world's ground plane Y, Y down) puts it the
+        bundle preset's `ground_y` above the ground, as the training grids are placed
+        (core.geometry.poses.level_over_ground); by default it stays at the camera's centre."""
         if not frame_dt > 0:
             raise ValueError(f"frame_dt must be positive seconds, got {frame_dt}")
         self.runtime = runtime
@@ -86,6 +90,10 @@ class MovingStream:
         self.config = MovingObjectsConfig(size_prior=size_prior)
         self.reuse = reuse
         self.level = bool(level)
+        if not self.level and (level_ahead or ground_y is not None):
+            raise ValueError("level_ahead and ground_y place the levelled map frame: they need level=True")
+        self.level_ahead = float(level_ahead)
+        self.ground_y = None if ground_y is None else float(ground_y)
         self.box_frame = LEVEL_FRAME if self.level else BOX_FRAME
         self._stages: dict[str, deque] = {}
         self._stages_lock = threading.Lock()
@@ -101,7 +109,9 @@ class MovingStream:
             raise InvalidInput("frame.world_T_cam", "missing: levelled boxes need each frame's camera pose in a "
                                                     "gravity-aligned world (Y down); run without levelling to "
                                                     "get boxes in the camera's frame")
-        return levelled(torch.from_numpy(frame.world_T_cam)[None]).to(self.runtime.device)  # 1×4×4
+        world_T_cam = torch.from_numpy(frame.world_T_cam)[None]  # 1×4×4
+        return level_over_ground(world_T_cam, ahead=self.level_ahead, ground_y=self.ground_y,
+                                 origin_height=self.runtime.bundle.preset.ground_y).to(self.runtime.device)
 
     @staticmethod
     def _world_T_frame(frame: View, world_T_ref: torch.Tensor | None) -> np.ndarray:

@@ -28,14 +28,15 @@ class RuntimeProcessor(MovingStream):
     """Decode `Frame` payloads and run egomotion + moving objects on the runtime's bundle."""
 
     def __init__(self, runtime: Runtime, *, min_score: float = 0.0, reuse: bool = True,
-                 frame_dt: float = DEFAULT_DT, size_prior: SizePrior | None = None, level: bool = False) -> None:
+                 frame_dt: float = DEFAULT_DT, size_prior: SizePrior | None = None, level: bool = False,
+                 level_ahead: float = 0.0, ground_y: float | None = None) -> None:
         """As MovingStream; refuses a bundle that cannot find moving objects."""
         if "moving_objects" not in runtime.routes:
             raise ValueError(f"bundle {runtime.version} cannot serve the stream bridge: it lacks the modules for "
                              f"moving_objects (loaded modules: {', '.join(runtime.modules)}); "
                              "train the flow module into the bundle first")
         super().__init__(runtime, min_score=min_score, frame_dt=frame_dt, size_prior=size_prior, reuse=reuse,
-                         level=level)
+                         level=level, level_ahead=level_ahead, ground_y=ground_y)
 
     def decode(self, payload: bytes) -> View:
         msg = types_pb2.Frame()

@@ -137,7 +137,9 @@ def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
          "--threads", str(args.threads), "--device", "cpu", "--status-every", "0",
          *([] if args.lookahead else ["--no-lookahead"]),
          *([] if args.size_prior is None else ["--size-prior", *map(str, args.size_prior)]),
-         *(["--level"] if args.level else [])], work, f"bridge_{preset}")
+         *(["--level"] if args.level else []),
+         *(["--level-ahead", str(args.level_ahead)] if args.level_ahead else []),
+         *(["--ground-y", str(args.ground_y)] if args.ground_y is not None else [])], work, f"bridge_{preset}")
     listener = camera = None
     try:
         wait_for(lambda: "ready" in bridge_err.read_text() or bridge.poll() is not None, 300, "the bridge")
@@ -201,6 +203,8 @@ def main(argv=None) -> int:
                         help="run the bridge without its look-ahead thread (for comparison)")
     parser.add_argument("--drain-s", type=float, default=5.0, help="wait after the last frame before stopping")
     parser.add_argument("--level", action="store_true", help="the bridge's --level: boxes in the levelled camera")
+    parser.add_argument("--level-ahead", type=float, default=0.0, help="the bridge's --level-ahead (metres)")
+    parser.add_argument("--ground-y", type=float, default=None, help="the bridge's --ground-y (the synthetic world: 2.0)")
     parser.add_argument("--size-prior", type=float, nargs=3, default=None, metavar=("L", "W", "H"),
                         help="the bridge's --size-prior (amodal boxes; default: the bridge's default)")
     for name in ("tiny", "small", "paper"):

@@ -71,6 +71,8 @@ CASES = [
     # amodal boxes: a size prior is three positive lengths, or auto / none for eval moving
     _case("bridge-size-prior-two", "stream bridge --bundle {bundle} --size-prior 4 2", "--size-prior"),
     _case("bridge-size-prior-negative", "stream bridge --bundle {bundle} --size-prior 4 2 -1", "--size-prior"),
+    _case("bridge-ground-y-without-level", "stream bridge --bundle {bundle} --ground-y 2", "add --level"),
+    _case("bridge-level-ahead-negative", "stream bridge --bundle {bundle} --level --level-ahead -3", "--level-ahead"),
     _case("eval-moving-size-prior-word", "eval moving --data {data} --bundle {bundle} --out {out}/e5 --device cpu "
           "--size-prior big", "--size-prior"),
     # eval: a dataset of another preset than the bundle's was evaluated (exit 0); --per-example 0 was a

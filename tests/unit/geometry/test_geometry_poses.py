@@ -74,3 +74,26 @@ def test_levelled_of_a_camera_looking_straight_down_takes_the_heading_from_its_x
     batch = torch.stack([_camera(0.3, 0.2, 0.1), world_T_cam])  # 2×4×4: leading dims are kept
     assert levelled(batch).shape == (2, 4, 4)
     torch.testing.assert_close(levelled(batch)[1], levelled(world_T_cam))
+
+
+def test_level_over_ground_moves_the_levelled_frame_ahead_and_onto_the_ground_height():
+    """The placed frame has the levelled frame's axes; its origin is `ahead` metres along the heading and
+    `origin_height` above the ground plane y = ground_y (Y down); without ground_y, at the camera's height."""
+    from core.geometry.poses import level_over_ground, levelled
+
+    torch.manual_seed(3)
+    world_T_cam = se3.random_rigid(6, 0.6, 5.0, torch.Generator().manual_seed(3), dtype=torch.float64)
+    base = levelled(world_T_cam)
+    placed = level_over_ground(world_T_cam, ahead=16.0, ground_y=2.0, origin_height=2.0)
+    torch.testing.assert_close(placed[:, :3, :3], base[:, :3, :3])
+    for i in range(6):
+        centre = world_T_cam[i, :3, 3]
+        forward = world_T_cam[i, :3, 2].clone()
+        forward[1] = 0.0  # the optical axis on the horizontal plane, by hand
+        forward = forward / forward.norm()
+        expected = centre + 16.0 * forward
+        expected[1] = 0.0  # 2 m above the ground at y = 2 (Y down)
+        torch.testing.assert_close(placed[i, :3, 3], expected)
+    kept_height = level_over_ground(world_T_cam, ahead=3.0)
+    torch.testing.assert_close(kept_height[:, 1, 3], world_T_cam[:, 1, 3])
+    torch.testing.assert_close(level_over_ground(world_T_cam), base)

@@ -386,14 +386,21 @@ def test_synthetic_and_recorded_sources_mark_each_scene_start():
         assert view.scene_start is flag
 
 
-def test_levelled_stream_answers_equal_the_reference_in_the_levelled_frames(bundle_dir, frames):
-    """level=True: each frame's map frame is its camera levelled to gravity; the answers equal the reference
-    pair made in those frames, Detections say frame "level" and carry its pose, and an unposed frame is
-    refused (InvalidInput naming world_T_cam)."""
-    from core.geometry.poses import levelled
+@pytest.mark.parametrize("ahead, ground_y", [(0.0, None), (12.0, 2.0)])
+def test_levelled_stream_answers_equal_the_reference_in_the_levelled_frames(bundle_dir, frames, ahead, ground_y):
+    """level=True: each frame's map frame is its camera levelled to gravity (placed `ahead` metres along its
+    heading and the preset's ground height above the ground at `ground_y`, when given); the answers equal the
+    reference pair made in those frames, Detections say frame "level" and carry its pose, and an unposed
+    frame is refused (InvalidInput naming world_T_cam)."""
+    from core.geometry.poses import level_over_ground
 
     runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
-    processor = RuntimeProcessor(runtime, min_score=-1.0, level=True)
+    processor = RuntimeProcessor(runtime, min_score=-1.0, level=True, level_ahead=ahead, ground_y=ground_y)
+
+    def levelled(world_T_cam):
+        return level_over_ground(world_T_cam, ahead=ahead, ground_y=ground_y,
+                                 origin_height=runtime.bundle.preset.ground_y)
+
     views = decoded(frames)
     pitch = np.degrees(np.arcsin(-views[0].world_T_cam[1, 2]))
     assert abs(pitch) > 3.0  # the synthetic camera looks down: levelling changes the frame
@@ -418,3 +425,5 @@ def test_levelled_stream_answers_equal_the_reference_in_the_levelled_frames(bund
                         camera_id="c", sequence=9, timestamp=1000.0 + 9 * STEP_S)
     with pytest.raises(InvalidInput, match="world_T_cam"):
         processor.step("c", CameraState(), unposed)
+    with pytest.raises(ValueError, match="level=True"):
+        RuntimeProcessor(runtime, min_score=-1.0, level_ahead=ahead or 1.0)
