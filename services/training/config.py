@@ -148,8 +148,27 @@ class TrainJobConfig:
         return {"task": self.task, "task_options": self.task_options, "preset": self.preset}
 
 
+# Tasks that build a mapper (their configs take `encoder_full_res`, which must match the mapper they load).
+MAPPER_TASKS = ("pretrain", "occupancy", "flow", "detector")
+
+
+def init_mapper_options(task: str, task_options: dict, init_bundle: str | None) -> dict:
+    """`task_options` plus the init bundle's mapper shape where the options leave it out: a task that
+    builds a mapper and warm-starts from a bundle gets that mapper's `encoder_full_res` (its
+    full-resolution branch), so `--init` of a bundle pretrained with `--encoder-full-res N` needs no
+    repeat of the flag. Options that set it explicitly win (a mismatch then fails at load, by name)."""
+    if task not in MAPPER_TASKS or not init_bundle or "encoder_full_res" in task_options:
+        return task_options
+    from core.bundle import read_bundle_meta
+
+    mapper = read_bundle_meta(init_bundle)["modules"].get("mapper")
+    full_res = int(((mapper or {}).get("config") or {}).get("full_res", 0))
+    return {**task_options, "encoder_full_res": full_res} if full_res else task_options
+
+
 def resolve_defaults(config: TrainJobConfig) -> TrainJobConfig:
-    """Return `config` with `None` fields taken from the preset and absolute paths."""
+    """Return `config` with `None` fields taken from the preset, absolute paths, and the init bundle's
+    mapper shape in the task options (`init_mapper_options`)."""
     from core.presets import get_preset
 
     try:
@@ -162,6 +181,7 @@ def resolve_defaults(config: TrainJobConfig) -> TrainJobConfig:
         data_dir=os.path.abspath(config.data_dir),
         run_dir=os.path.abspath(config.run_dir),
         init_bundle=os.path.abspath(config.init_bundle) if config.init_bundle else None,
+        task_options=init_mapper_options(config.task, config.task_options, config.init_bundle),
         steps=config.steps if config.steps is not None else defaults.steps,
         batch_size=config.batch_size if config.batch_size is not None else defaults.batch_size,
         # flow trains at the preset's flow_lr (the paper: 1e-4 for flow), every other task at lr

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from services.cli.argtypes import non_negative_float
+from services.cli.argtypes import non_negative_float, non_negative_int
 from services.cli.train import add_task_parser, run_train
 
 OBJECTIVES = ("contrastive", "regression")
@@ -20,6 +20,10 @@ def register(tasks) -> None:
                              "an object-sized block of one view's input moves and each moved voxel's feature "
                              "must find itself again among its new place's neighbours, so that 3D flow over "
                              "the maps can follow objects (README: Status, flow over features)")
+    parser.add_argument("--encoder-full-res", type=non_negative_int, default=0, metavar="N",
+                        help="channels of the 3D encoder's full-resolution branch (0, the default: the paper's "
+                             "layers); with --match-weight it makes features follow objects moved 1-3 voxels "
+                             "(README: Status). Later tasks started with --init take it from the bundle")
     parser.set_defaults(func=_run)
 
 
@@ -27,4 +31,6 @@ def _run(args) -> int:
     options = {"objective": args.objective}
     if args.match_weight > 0:  # recorded only when used: the default run's config stays the paper's
         options["coeff_match"] = args.match_weight
+    if args.encoder_full_res > 0:
+        options["encoder_full_res"] = args.encoder_full_res
     return run_train("pretrain", args, options)
