@@ -159,6 +159,12 @@ def model_size_prior(eval_all_dir: Path) -> list[float] | None:
     return None if prior is None else [round(prior[k], 2) for k in ("length", "width", "height")]
 
 
+# The stream step's map placement (README: Live streams): 16 m ahead of the camera, over the synthetic
+# world's ground plane (world y = +2, Y down; core.synthetic puts it at the presets' ground_y).
+STREAM_LEVEL_AHEAD_M = 16.0
+SYNTHETIC_GROUND_Y = 2.0
+
+
 def stream(bundle: Path, out_dir: Path, *, size_prior: list[float] | None = None) -> Path | None:
     """6. Bridge + simulated camera + listener over zenoh on loopback (peer mode), and with the viz
     extra a `stream view` recording everything to OUT/stream.rrd. Returns that recording's path.
@@ -168,6 +174,8 @@ def stream(bundle: Path, out_dir: Path, *, size_prior: list[float] | None = None
     recording = out_dir / "stream.rrd" if rerun_installed() else None
     bridge_cmd = ["stream", "bridge", "--bundle", str(bundle), "--listen", endpoint, "--duration", "300",
                   "--bridge-id", "quickstart", "--status-every", "0",
+                  # maps placed over the synthetic street as the training grids are (its ground: world y = 2)
+                  "--level", "--level-ahead", str(STREAM_LEVEL_AHEAD_M), "--ground-y", str(SYNTHETIC_GROUND_Y),
                   *(["--size-prior", *map(str, size_prior)] if size_prior else [])]
     listen_cmd = ["stream", "listen", "--camera-id", "cam0", "--connect", endpoint]
     view_cmd = ["stream", "view", "--camera-id", "cam0", "--connect", endpoint, "--save", str(recording)]
