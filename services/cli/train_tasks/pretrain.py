@@ -20,6 +20,9 @@ def register(tasks) -> None:
                              "an object-sized block of one view's input moves and each moved voxel's feature "
                              "must find itself again among its new place's neighbours, so that 3D flow over "
                              "the maps can follow objects (README: Status, flow over features)")
+    parser.add_argument("--occupancy-weight", type=non_negative_float, default=None, metavar="W",
+                        help="weight of the occupancy loss (default 1); 3 measured to keep the occupancy head "
+                             "with --match-weight 1 (README: Status, occupancy)")
     parser.add_argument("--encoder-full-res", type=non_negative_int, default=0, metavar="N",
                         help="channels of the 3D encoder's full-resolution branch (0, the default: the paper's "
                              "layers); with --match-weight it makes features follow objects moved 1-3 voxels "
@@ -31,6 +34,8 @@ def _run(args) -> int:
     options = {"objective": args.objective}
     if args.match_weight > 0:  # recorded only when used: the default run's config stays the paper's
         options["coeff_match"] = args.match_weight
+    if args.occupancy_weight is not None:
+        options["coeff_occ"] = args.occupancy_weight
     if args.encoder_full_res > 0:
         options["encoder_full_res"] = args.encoder_full_res
     return run_train("pretrain", args, options)

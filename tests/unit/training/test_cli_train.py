@@ -103,8 +103,8 @@ def test_match_weight_reaches_the_task_options_and_a_negative_one_is_refused(tmp
     assert main(base) == 0
     assert seen == {"objective": "contrastive"}  # off: the paper's objective, nothing extra recorded
     seen.clear()
-    assert main(base + ["--encoder-full-res", "16"]) == 0
-    assert seen == {"objective": "contrastive", "encoder_full_res": 16}
+    assert main(base + ["--encoder-full-res", "16", "--occupancy-weight", "3"]) == 0
+    assert seen == {"objective": "contrastive", "encoder_full_res": 16, "coeff_occ": 3.0}
     with pytest.raises(SystemExit) as stop:
         main(base + ["--match-weight", "-1"])
     assert stop.value.code == 2 and "--match-weight" in capsys.readouterr().err
