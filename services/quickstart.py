@@ -160,22 +160,24 @@ def model_size_prior(eval_all_dir: Path) -> list[float] | None:
 
 
 # The stream step's map placement (README: Live streams): 16 m ahead of the camera, over the synthetic
-# world's ground plane (world y = +2, Y down; core.synthetic puts it at the presets' ground_y).
+# world's ground plane, which core.synthetic puts at world y = the rendering preset's ground_y (Y down;
+# `stream camera --synthetic` renders the tiny preset by default).
 STREAM_LEVEL_AHEAD_M = 16.0
-SYNTHETIC_GROUND_Y = 2.0
 
 
 def stream(bundle: Path, out_dir: Path, *, size_prior: list[float] | None = None) -> Path | None:
     """6. Bridge + simulated camera + listener over zenoh on loopback (peer mode), and with the viz
     extra a `stream view` recording everything to OUT/stream.rrd. Returns that recording's path.
     size_prior: the bridge's amodal box size (from step 4's evaluation), or None for visible boxes."""
+    from core.presets import TINY  # the synthetic camera's preset: its ground is the world's y = ground_y
+
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     frames = 16
     recording = out_dir / "stream.rrd" if rerun_installed() else None
     bridge_cmd = ["stream", "bridge", "--bundle", str(bundle), "--listen", endpoint, "--duration", "300",
                   "--bridge-id", "quickstart", "--status-every", "0",
                   # maps placed over the synthetic street as the training grids are (its ground: world y = 2)
-                  "--level", "--level-ahead", str(STREAM_LEVEL_AHEAD_M), "--ground-y", str(SYNTHETIC_GROUND_Y),
+                  "--level", "--level-ahead", str(STREAM_LEVEL_AHEAD_M), "--ground-y", str(TINY.ground_y),
                   *(["--size-prior", *map(str, size_prior)] if size_prior else [])]
     listen_cmd = ["stream", "listen", "--camera-id", "cam0", "--connect", endpoint]
     view_cmd = ["stream", "view", "--camera-id", "cam0", "--connect", endpoint, "--save", str(recording)]

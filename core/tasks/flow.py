@@ -109,8 +109,7 @@ class FlowTask(nn.Module):
                            finest=config.finest, inputs=config.inputs, unit_cost=config.unit_cost,
                            soft_argmax=config.soft_argmax, refine=config.refine, beta=config.beta,
                            zero_bias=config.zero_bias, cost_channels=config.cost_channels,
-                           refine_radius=None if config.refine_radius is None else tuple(config.refine_radius),
-                           refine_aggregate=tuple(config.refine_aggregate))
+                           refine_radius=config.refine_radius, refine_aggregate=config.refine_aggregate)
         self._generator = torch.Generator().manual_seed(config.seed) if config.seed is not None else None
 
     @staticmethod
