@@ -15,8 +15,9 @@ paper's are 64 32 32; small's 16 16 16), to price the paper's model on a preset'
 
 Per-task mode (--tasks, CPU only, presets tiny and small; --preset all = both): for each (task,
 preset) row, every task of core.tasks.build_task (pretrain = contrastive, pretrain_regression =
-pretrain with objective="regression", egomotion, occupancy, flow, detector; flow and detector keep
-their untrained mapper frozen, as built, and flow's default "volume" inputs do not run it) on a batch
+pretrain with objective="regression", egomotion, occupancy, flow, flow_features = flow over the
+mapper's features with the README's recipe, detector; flow and detector keep their untrained mapper
+frozen, as built, and flow's default "volume" inputs do not run it) on a batch
 of the preset's batch size of synthetic records (generate_record, moving_ego=True, T=2): --warmup
 untimed steps, then --steps timed steps of forward + backward + Adam (over the parameters that
 require grad, as services/training/loop.py does), each timed alone (median and mean), then
@@ -83,6 +84,10 @@ TASK_VARIANTS: dict[str, tuple[str, dict]] = {
     "egomotion": ("egomotion", {}),
     "occupancy": ("occupancy", {}),
     "flow": ("flow", {}),
+    # the recipe of flow over features (README "Benchmarks"): frozen matching-trained mapper, ±3/±1/±3 grid step
+    # with box-aggregated costs (its cost volume and box mean have hand-written backwards)
+    "flow_features": ("flow", {"inputs": "features", "refine_radius": (3, 1, 3), "refine_aggregate": (1, 1, 1),
+                               "encoder_full_res": 16}),
     "detector": ("detector", {}),
 }
 CPU_PRESETS = ("tiny", "small")

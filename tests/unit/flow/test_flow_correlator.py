@@ -174,6 +174,19 @@ def test_aggregate_costs_is_the_clipped_box_mean(half_widths):
     torch.testing.assert_close(aggregate_costs(cost, half_widths), _box_mean_loop(cost, half_widths))
 
 
+@pytest.mark.parametrize("half_widths", [(1, 1, 1), (2, 0, 1), (7, 1, 0)])
+def test_aggregate_costs_gradient_is_the_loops(half_widths):
+    """The hand-written backward against autograd through the slow loop (7: a box wider than the axis)."""
+    from core.models.flow3d import aggregate_costs
+
+    g = torch.Generator().manual_seed(4)
+    cost = torch.randn(2, 3, 4, 3, 5, generator=g, dtype=torch.float64, requires_grad=True)
+    weights = torch.randn(2, 3, 4, 3, 5, generator=g, dtype=torch.float64)
+    (fast,) = torch.autograd.grad((aggregate_costs(cost, half_widths) * weights).sum(), cost)
+    (slow,) = torch.autograd.grad((_box_mean_loop(cost, half_widths) * weights).sum(), cost)
+    torch.testing.assert_close(fast, slow)
+
+
 def test_refine_aggregate_recovers_a_rigid_shift_single_voxels_miss():
     """A block shifted by (2, 0, 1) voxels in noise-corrupted features: the grid step's box-aggregated costs
     find the shift at the block's voxels where single-voxel costs are fooled by the noise more often."""
