@@ -238,8 +238,10 @@ def detections_dict(d) -> dict:
     """n3dmap.v1.Detections -> plain dict with numpy boxes (as the REST client returns)."""
     boxes = [{k: getattr(b, k) for k in ("x", "y", "z", "lx", "ly", "lz", "yaw", "score", "label", "vx", "vy", "vz")}
              for b in d.boxes]
+    world_T_frame = codecs.tensor_to_numpy(d.world_T_frame, "world_T_frame") if d.HasField("world_T_frame") else None
     return {"frame": d.frame, "bundle_version": d.bundle_version, "camera_id": d.camera_id, "sequence": d.sequence,
-            "source_timestamp": d.source_timestamp, "latency_s": d.latency_s, **_boxes_from_dicts(boxes)}
+            "source_timestamp": d.source_timestamp, "latency_s": d.latency_s, "world_T_frame": world_T_frame,
+            **_boxes_from_dicts(boxes)}
 
 
 class GrpcClient:
@@ -327,14 +329,22 @@ class GrpcClient:
         r = self._call(self._stub.MovingObjects, req)
         return {"info": _info(r.info), **detections_dict(r.detections)}
 
-    def stream_moving_objects(self, frames):
+    def stream_moving_objects(self, frames, *, level: bool = False, level_ahead: float | None = None,
+                              ground_y: float | None = None):
         """Iterable of single-view Frames -> iterator of detections dicts: one per frame, but none for a frame
-        whose sequence number is not past its camera's last one (dropped as a duplicate or out of order)."""
+        whose sequence number is not past its camera's last one (dropped as a duplicate or out of order).
+        level / level_ahead / ground_y: the zenoh bridge's --level / --level-ahead / --ground-y (boxes in each
+        frame's camera levelled to gravity, frame "level", its pose in the dict's world_T_frame), sent as the
+        call's metadata (services.inference.stream_options)."""
+        from services.inference.stream_options import stream_metadata
+
+        metadata = self._metadata + stream_metadata(level=level, level_ahead=level_ahead, ground_y=ground_y)
+
         def requests():
             for f in frames:
                 yield frame_proto(f.batched(), 0, png=self._png)
         try:
-            for d in self._stub.StreamMovingObjects(requests(), timeout=self._timeout_s, metadata=self._metadata):
+            for d in self._stub.StreamMovingObjects(requests(), timeout=self._timeout_s, metadata=metadata):
                 yield detections_dict(d)
         except self._grpc.RpcError as e:
             code = e.code().name

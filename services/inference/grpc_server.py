@@ -22,6 +22,7 @@ from services.inference.errors import InvalidInput, ModuleUnavailable, NotReady,
 from services.inference.camera_state import CameraState
 from services.inference.camera_stream import MovingStream
 from services.inference.routes import DetectInput, MapInput, flow_input, moving_input, pair_input
+from services.inference.stream_options import stream_options
 from services.inference.runtime import Runtime
 from services.inference.validation import check_min_score
 
@@ -143,12 +144,14 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
 
     async def StreamMovingObjects(self, request_iterator, context):
         """Per camera, moving objects between its previous frame and this one: the zenoh bridge's step
-        (services.inference.camera_stream), run on the model thread."""
+        (services.inference.camera_stream), run on the model thread; the call's metadata may ask for the
+        bridge's levelled placement (services.inference.stream_options)."""
         started = time.perf_counter()
         status = "OK"
         try:
             self.runtime.require("moving_objects")
-            stream = MovingStream(self.runtime, min_score=-1.0, frame_dt=self.runtime.config.frame_dt)
+            stream = MovingStream(self.runtime, min_score=-1.0, frame_dt=self.runtime.config.frame_dt,
+                                  **stream_options(context.invocation_metadata()))
             states: dict[str, CameraState] = {}
             async for frame in request_iterator:
                 received = time.perf_counter()

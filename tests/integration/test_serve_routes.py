@@ -263,6 +263,38 @@ def test_stream_follows_the_bridge_rules_and_answers_as_core_pipeline(server, gr
     assert e.value.status == "INVALID_ARGUMENT" and e.value.detail.startswith("frame.timestamp")
 
 
+def test_stream_levelled_by_metadata_answers_as_core_pipeline_in_the_placed_frames(grpc_client, core_bundle):
+    """The call's metadata asks for the bridge's --level --level-ahead --ground-y: boxes in each previous frame's
+    camera levelled to gravity and placed (core.geometry.poses.level_over_ground), frame "level" with that pose,
+    equal to core.pipeline given those map frames. A malformed or orphan option ends the call with
+    INVALID_ARGUMENT naming the metadata key."""
+    import torch
+
+    from core.geometry.poses import level_over_ground
+    from core.pipeline import moving_objects
+    from services.inference.client import ServiceCallError
+
+    ahead, ground_y = 12.0, 2.0
+    frames = movers(3)
+    out = list(grpc_client.stream_moving_objects(frames, level=True, level_ahead=ahead, ground_y=ground_y))
+    assert [d["frame"] for d in out] == ["level"] * 3
+    boxes = 0
+    for before, now, answer in zip(frames, frames[1:], out[1:]):
+        inputs = {**core_inputs(before, "0"), **core_inputs(now, "1")}
+        placed = {f"world_T_ref{i}": level_over_ground(inputs[f"world_T_cam{i}"][:, 0], ahead=ahead, ground_y=ground_y,
+                                                       origin_height=core_bundle.preset.ground_y) for i in (0, 1)}
+        np.testing.assert_allclose(answer["world_T_frame"], placed["world_T_ref0"][0].numpy(), atol=1e-5)
+        with torch.no_grad():
+            want = moving_objects(core_bundle, **inputs, **placed, dt=now.timestamp - before.timestamp)
+        assert_boxes(answer, core_boxes(want, -1.0))
+        boxes += len(answer["boxes"])
+    assert boxes > 0
+    for kwargs, key in (({"level_ahead": 5.0}, "n3dmap-level-ahead"), ({"level": True, "level_ahead": -1.0}, "n3dmap-level-ahead")):
+        with pytest.raises(ServiceCallError) as e:
+            list(grpc_client.stream_moving_objects(movers(2), **kwargs))
+        assert e.value.status == "INVALID_ARGUMENT" and e.value.detail.startswith(f"metadata {key}"), e.value.detail
+
+
 # ------------------------------------------------------------------------------------ bad input
 
 
