@@ -235,7 +235,8 @@ def _grid(msg) -> dict:
 
 
 def detections_dict(d) -> dict:
-    """n3dmap.v1.Detections -> plain dict with numpy boxes (as the REST client returns)."""
+    """n3dmap.v1.Detections -> plain dict with numpy boxes (as the REST client returns), plus world_T_frame (4×4 numpy,
+    the pose of the boxes' frame; None when the answer carries none)."""
     boxes = [{k: getattr(b, k) for k in ("x", "y", "z", "lx", "ly", "lz", "yaw", "score", "label", "vx", "vy", "vz")}
              for b in d.boxes]
     world_T_frame = codecs.tensor_to_numpy(d.world_T_frame, "world_T_frame") if d.HasField("world_T_frame") else None
