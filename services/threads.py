@@ -37,9 +37,14 @@ class ThreadPlan:
     def oversubscribed(self) -> bool:
         return self.processes * self.threads > self.cpus
 
-    def describe(self) -> str:
+    def describe(self, *, independent: bool = False) -> str:
+        """One line for the run's log. independent: the processes never wait on each other (benchmark seeds),
+        so one thread each over more processes than CPUs only takes turns; DDP workers would spin in their
+        collectives instead."""
         text = (f"{self.processes} process(es) × {self.threads} torch thread(s) on {self.cpus} usable CPU(s)")
-        if self.oversubscribed:
+        if self.oversubscribed and self.threads == 1 and independent:
+            text += f" — more processes than CPUs, time-sliced: each step ~{self.processes / self.cpus:.1f}× slower"
+        elif self.oversubscribed:
             text += " — OVERSUBSCRIBED: more threads than CPUs, expect steps several times slower"
         return text
 

@@ -58,8 +58,10 @@ def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds:
                     threads: int | None = None, log: Callable[[str], None] = print) -> dict:
     """Run (or continue) the whole benchmark into `out_dir`; returns the report's metrics dict.
 
-    parallel_seeds: seeds trained at the same time, each in a worker process (capped at the usable
-    CPUs); threads: torch threads per process instead of the plan's share (may oversubscribe)."""
+    parallel_seeds: seeds trained at the same time, each in a worker process; more than the usable CPUs
+    run one thread each, time-sliced (3 seeds on 2 CPUs then end together, instead of the third training
+    alone on one CPU while the other idles); threads: torch threads per process instead of the plan's share
+    (may oversubscribe)."""
     from services.bench.report import write_bench_report
 
     started = time.monotonic()
@@ -77,8 +79,8 @@ def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds:
     data = _data_stages(stages, config)
     workers = min(parallel_seeds, len(config.seeds))
     if workers > 1:
-        parallel = _thread_plan(workers, threads)
-        log(f"[bench] threads, seeds in parallel: {parallel.describe()}")
+        parallel = _thread_plan(workers, threads, cap_processes=False)
+        log(f"[bench] threads, seeds in parallel: {parallel.describe(independent=True)}")
         _run_seed_workers(out, config, parallel, log)
     results: dict = {"seeds": {}}
     test_records = _load_records(data["test"])
@@ -106,8 +108,8 @@ def run_one_seed(out_dir: str | Path, seed: int, *, log: Callable[[str], None] =
                  resolve_device(config.device))
 
 
-def _thread_plan(processes: int, threads: int | None) -> ThreadPlan:
-    plan = plan_threads(processes=processes)
+def _thread_plan(processes: int, threads: int | None, *, cap_processes: bool = True) -> ThreadPlan:
+    plan = plan_threads(processes=processes, cap_processes=cap_processes)
     return plan if threads is None else ThreadPlan(cpus=plan.cpus, processes=plan.processes, threads=threads)
 
 

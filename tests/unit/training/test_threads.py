@@ -3,7 +3,7 @@ processes than CPUs, and then the plan says it is oversubscribed)."""
 
 import pytest
 
-from services.threads import plan_threads, usable_cpus
+from services.threads import ThreadPlan, plan_threads, usable_cpus
 
 
 @pytest.mark.parametrize("cpus, processes, want", [
@@ -23,6 +23,16 @@ def test_an_explicit_worker_count_above_the_cpus_is_flagged():
     assert (plan.processes, plan.threads) == (4, 1) and plan.oversubscribed
     assert "OVERSUBSCRIBED" in plan.describe()
     assert not plan_threads(processes=2, cpus=8, cap_processes=False).oversubscribed
+
+
+def test_independent_one_thread_processes_above_the_cpus_are_time_sliced_not_spinning():
+    """Benchmark seeds never wait on each other: 3 one-thread processes on 2 CPUs take turns (each ~1.5×
+    slower); the same plan for DDP workers keeps the OVERSUBSCRIBED warning."""
+    plan = plan_threads(processes=3, cpus=2, cap_processes=False)
+    assert (plan.processes, plan.threads) == (3, 1) and plan.oversubscribed
+    assert "time-sliced: each step ~1.5× slower" in plan.describe(independent=True)
+    assert "OVERSUBSCRIBED" in plan.describe()
+    assert "OVERSUBSCRIBED" in ThreadPlan(cpus=2, processes=3, threads=2).describe(independent=True)
 
 
 def test_default_cpus_come_from_the_affinity_mask():
