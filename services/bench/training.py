@@ -17,6 +17,9 @@ from services.bench.plan import BenchConfig
 from services.bench.stopping import SELECTED, StageRule, heldout_task_loss, train_by_rule
 
 
+_ONE_CALL_CHECKPOINT_EVERY = 200
+
+
 def train_stage(config: BenchConfig, *, task: str, data_dir: Path, run_dir: Path, rule: StageRule, seed: int,
                 heldout_records: list[dict], task_options: dict | None = None, init_bundle: Path | None = None,
                 freeze: tuple[str, ...] = (), batch_size: int | None = None,
@@ -27,7 +30,9 @@ def train_stage(config: BenchConfig, *, task: str, data_dir: Path, run_dir: Path
     from services.training.job import latest_checkpoint_dir, run_training
 
     def job(steps: int) -> TrainJobConfig:
-        every = rule.eval_every if rule.kind == "plateau" else max(1, steps // 2)
+        # a stage trained in one call (fixed, epochs) checkpoints at least every 200 steps: a cut-off run
+        # resumes there instead of from the stage's start or middle
+        every = rule.eval_every if rule.kind == "plateau" else max(1, min(steps // 2, _ONE_CALL_CHECKPOINT_EVERY))
         return TrainJobConfig(
             task=task, data_dir=str(data_dir), run_dir=str(run_dir), preset=config.preset,
             task_options=dict(task_options or {}), workers=config.workers, device=config.device,
