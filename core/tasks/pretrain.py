@@ -33,6 +33,7 @@ from core.geometry.grid import GridConfig
 from core.losses.contrastive import ContrastiveConfig, view_contrastive_loss
 from core.losses.dense import dense_l2
 from core.losses.local_matching import local_matching_loss
+from core.losses.local_negatives import local_negative_loss
 from core.losses.occupancy import balanced_occupancy_loss, occupancy_accuracy
 from core.losses.regression import rgb_l1
 from core.models.flow_synthetic import landing_place, move_block, sample_object_motions
@@ -74,6 +75,10 @@ class PretrainConfig:
     match_radius: tuple[int, int, int] = (2, 1, 2)
     match_temperature: float = 0.1
     match_samples: int = 256
+    # Local negatives of the 3D contrastive loss (core.losses.local_negatives; contrastive only; 0 = off, the
+    # paper's): weight, neighbour radius in voxels.
+    coeff_local_negatives: float = 0.0
+    local_negative_radius: int = 2
     seed: int | None = None        # view selection / sampling RNG; None uses torch's global RNG
 
     def __post_init__(self) -> None:
@@ -81,6 +86,10 @@ class PretrainConfig:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {self.objective!r}")
         if self.render_scale not in (0.5, 1.0):
             raise ValueError(f"render_scale must be 0.5 or 1.0, got {self.render_scale}")
+        if self.coeff_local_negatives > 0 and self.objective != "contrastive":
+            raise ValueError("coeff_local_negatives needs objective='contrastive' (regression has no negatives)")
+        if self.local_negative_radius < 1:
+            raise ValueError(f"local_negative_radius must be >= 1 voxel, got {self.local_negative_radius}")
 
 
 class PretrainTask(nn.Module):
@@ -160,12 +169,19 @@ class PretrainTask(nn.Module):
             valid2d = self._valid_pixels(depth[:, target], pix_target, cam_target, (Hr, Wr))
             out["loss_3d"] = view_contrastive_loss(top3d, bottom3d, valid3d, self.cfg.contrastive, self._generator)
             out["loss_2d"] = view_contrastive_loss(top2d, bottom2d, valid2d, self.cfg.contrastive, self._generator)
+            if self.cfg.coeff_local_negatives > 0:
+                out["loss_local_neg"] = local_negative_loss(
+                    top3d, bottom3d, valid3d, radius=self.cfg.local_negative_radius,
+                    samples=self.cfg.contrastive.samples, beta=self.cfg.contrastive.beta,
+                    margin=self.cfg.contrastive.margin, generator=self._generator)
             out["loss_l2_3d"] = dense_l2(top3d, bottom3d, valid3d)
             out["loss_l2_2d"] = dense_l2(top2d, bottom2d, valid2d)
             out["valid_3d"] = valid3d.float().mean()
             out["valid_2d"] = valid2d.float().mean()
             view_loss = (self.cfg.coeff_3d * out["loss_3d"] + self.cfg.coeff_2d * out["loss_2d"]
                          + self.cfg.coeff_l2 * (out["loss_l2_3d"] + out["loss_l2_2d"]))
+            if "loss_local_neg" in out:
+                view_loss = view_loss + self.cfg.coeff_local_negatives * out["loss_local_neg"]
         else:
             target_small = F.interpolate(rgb_target, size=(Hr, Wr), mode="area")  # B×3×Hr×Wr
             out["rgb_l1"] = rgb_l1(top2d + 0.5, target_small)  # the head predicts centred colour
