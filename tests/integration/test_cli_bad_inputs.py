@@ -61,6 +61,12 @@ CASES = [
           "--object-store-mb"),
     _case("train-data-bad-json", "train pretrain --data {badjson} --run-dir {out}/r5 --workers 0",
           "{badjson}/manifest.json"),
+    _case("train-local-negatives-regression",
+          "train pretrain --data {data} --run-dir {out}/r6 --workers 0 --objective regression --local-negatives 1",
+          "--local-negatives needs --objective contrastive"),
+    _case("train-local-negative-radius-0",
+          "train pretrain --data {data} --run-dir {out}/r7 --workers 0 --local-negatives 1 --local-negative-radius 0",
+          "--local-negative-radius"),
     # jobs / bundle / bench: already one-line errors; kept so that they stay so
     _case("jobs-no-address", "jobs list", "--address"),
     _case("jobs-address-nothing", "jobs status raysubmit_x --address http://127.0.0.1:9", "http://127.0.0.1:9",

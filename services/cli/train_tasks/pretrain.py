@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from services.cli.argtypes import non_negative_float, non_negative_int
+from services.cli.errors import CliError
 from services.cli.train import add_task_parser, run_train
 
 OBJECTIVES = ("contrastive", "regression")
@@ -20,6 +21,12 @@ def register(tasks) -> None:
                              "an object-sized block of one view's input moves and each moved voxel's feature "
                              "must find itself again among its new place's neighbours, so that 3D flow over "
                              "the maps can follow objects (README: Status, flow over features)")
+    parser.add_argument("--local-negatives", type=non_negative_float, default=0.0, metavar="W",
+                        help="weight of local negatives in the 3D contrastive loss (0, the default: off, the "
+                             "paper's batch-wide negatives only): each sampled voxel's prediction must also differ "
+                             "from the observed feature of a random neighbour (contrastive only; README: Training)")
+    parser.add_argument("--local-negative-radius", type=non_negative_int, default=2, metavar="R",
+                        help="neighbours of --local-negatives within ±R voxels per axis (default 2)")
     parser.add_argument("--occupancy-weight", type=non_negative_float, default=None, metavar="W",
                         help="weight of the occupancy loss (default 1); 3 measured to keep the occupancy head "
                              "with --match-weight 1 (README: Status, occupancy)")
@@ -34,6 +41,13 @@ def _run(args) -> int:
     options = {"objective": args.objective}
     if args.match_weight > 0:  # recorded only when used: the default run's config stays the paper's
         options["coeff_match"] = args.match_weight
+    if args.local_negatives > 0:
+        if args.objective != "contrastive":
+            raise CliError("--local-negatives needs --objective contrastive (view regression has no negatives)")
+        if args.local_negative_radius < 1:
+            raise CliError(f"--local-negative-radius must be >= 1 voxel, got {args.local_negative_radius}")
+        options["coeff_local_negatives"] = args.local_negatives
+        options["local_negative_radius"] = args.local_negative_radius
     if args.occupancy_weight is not None:
         options["coeff_occ"] = args.occupancy_weight
     if args.encoder_full_res > 0:

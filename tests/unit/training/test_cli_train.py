@@ -105,6 +105,9 @@ def test_match_weight_reaches_the_task_options_and_a_negative_one_is_refused(tmp
     seen.clear()
     assert main(base + ["--encoder-full-res", "16", "--occupancy-weight", "3"]) == 0
     assert seen == {"objective": "contrastive", "encoder_full_res": 16, "coeff_occ": 3.0}
+    seen.clear()
+    assert main(base + ["--local-negatives", "1", "--local-negative-radius", "3"]) == 0
+    assert seen == {"objective": "contrastive", "coeff_local_negatives": 1.0, "local_negative_radius": 3}
     with pytest.raises(SystemExit) as stop:
         main(base + ["--match-weight", "-1"])
     assert stop.value.code == 2 and "--match-weight" in capsys.readouterr().err
