@@ -14,6 +14,7 @@ from typing import Callable
 
 from services.bench import aggregate as agg
 from services.bench.aggregate import fmt, spread
+from services.bench.plan import OCCUPANCY_MODULE
 from services.bench.judge import (
     FLOORS, AtLeast, Better, Condition, Positive, RatioAtMost, WithinOf, derive, judge,
 )
@@ -149,12 +150,13 @@ def check_claims(per_seed: dict, *, budgets: list[str], variants: list[str] | No
         [WithinOf("egomotion module", "GT egomotion", STABILISED_TOLERANCE, AP), Better("egomotion module", "2.5D", AP)],
         v, ["egomotion module", "GT egomotion", "2.5D"], quick=quick, note="moving-camera AP"))
 
-    v = _values(per_seed, {k: (lambda r, k=k: _get(r, "occupancy", "contrastive", k))
+    v = _values(per_seed, {k: (lambda r, k=k: _get(r, "occupancy", OCCUPANCY_MODULE, k))
                            for k in ("acc_occupied", "acc_free", "acc_all")})
     claims.append(_claim(
         "occupancy_accuracy", "Occupancy from a single view is nearly perfect on labelled voxels.",
         "occupied .97, free .98, all .98", [AtLeast("acc_occupied", 0.95), AtLeast("acc_free", 0.95)], v,
-        ["acc_occupied", "acc_free", "acc_all"], quick=quick, note="contrastive model"))
+        ["acc_occupied", "acc_free", "acc_all"], quick=quick,
+        note="occupancy module, fine-tuned from the contrastive pretraining"))
 
     if any(_get(r, "egomotion", "methods", "model", "rot_err_rad_mean") is not None for r in per_seed.values()):
         def err(method: str, key: str):

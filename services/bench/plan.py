@@ -7,16 +7,17 @@ single fields (`dataclasses.replace`). The plan fixes, for the whole benchmark:
   `test_episodes` test records (generated from `data_seed + 1`) and `val_episodes` validation records
   for the stopping rules (from `data_seed + 2`), so no record is in two of them;
 - seeds: one full set of trained models per seed (weights and data order; the data are shared);
-- a stopping rule per stage (services.bench.stopping): pretraining (contrastive and regression), flow
-  and egomotion train until their loss on `val_episodes` held-out records stops improving (bounded);
+- a stopping rule per stage (services.bench.stopping): pretraining (contrastive and regression), the
+  occupancy module, flow and egomotion train until their loss on `val_episodes` held-out records stops
+  improving (bounded);
   the detector trains a fixed number of epochs over its labelled records (bounded);
 - label budgets: numbers of labelled training records the detector gets (None = all of them);
 - the detector variants: (pretraining arm, "frozen" | "finetuned") pairs; the random-init arm is
   trained end to end (frozen random features measure nothing the paper reports);
 - `task_options`: extra task options per kind of stage (TASK_OPTION_KINDS), on top of the tasks'
   defaults, for running the benchmark with a recipe other than the defaults (e.g. pretraining's matching
-  term and a wider flow window): "mapper" goes to every stage that builds a mapper (pretraining, detector,
-  flow; e.g. `encoder_full_res`, which they must all agree on), the others to their stages. The options that
+  term and a wider flow window): "mapper" goes to every stage that builds a mapper (pretraining, occupancy,
+  detector, flow; e.g. `encoder_full_res`, which they must all agree on), the others to their stages. The options that
   define the benchmark's arms (PROTOCOL_OPTIONS) cannot be set this way.
 
 `quick=True` is the test profile: a handful of records and 2 fixed steps per stage, so the whole
@@ -33,6 +34,9 @@ from services.bench.stopping import StageRule
 
 ARMS = ("random", "regression", "contrastive")          # pretraining arms, weakest first
 PRETRAINED_ARMS = ("regression", "contrastive")          # arms that run a pretraining stage
+# Occupancy rows: the module trained by the paper's protocol (the row the claim reads), then each pretraining's head.
+OCCUPANCY_MODULE = "contrastive, occupancy module"
+OCCUPANCY_ROWS = (OCCUPANCY_MODULE, *(f"{arm}, pretraining head" for arm in PRETRAINED_ARMS))
 MODES = ("frozen", "finetuned")
 DEFAULT_VARIANTS: tuple[tuple[str, str], ...] = (
     ("random", "finetuned"),
@@ -42,9 +46,13 @@ DEFAULT_VARIANTS: tuple[tuple[str, str], ...] = (
 
 
 # Kinds of stage `BenchConfig.task_options` may give options to ("mapper": every stage that builds one).
-TASK_OPTION_KINDS = ("mapper", "pretrain", "detector", "flow_features", "flow_volume")
+TASK_OPTION_KINDS = ("mapper", "pretrain", "occupancy", "detector", "flow_features", "flow_volume")
 # Options the benchmark sets itself to define its arms and protocol.
 PROTOCOL_OPTIONS = ("objective", "inputs", "labels", "freeze_features")
+
+
+# Training stages that have a stopping rule (StageRules' fields; the CLI's --<name>-steps).
+STAGE_NAMES = ("pretrain", "detector", "flow", "egomotion", "occupancy")
 
 
 class BenchConfigError(N3dmapError):
@@ -59,6 +67,7 @@ class StageRules:
     detector: StageRule
     flow: StageRule
     egomotion: StageRule
+    occupancy: StageRule
 
     def __post_init__(self) -> None:
         for name, rule in vars(self).items():
@@ -70,7 +79,10 @@ class StageRules:
 
     @staticmethod
     def from_dict(d: dict) -> "StageRules":
-        return StageRules(**{name: StageRule(**d[name]) for name in ("pretrain", "detector", "flow", "egomotion")})
+        missing = sorted(set(STAGE_NAMES) - set(d))
+        if missing:
+            raise BenchConfigError(f"the plan's rules lack {missing} (a plan of an older n3dmap); use a new --out")
+        return StageRules(**{name: StageRule(**d[name]) for name in STAGE_NAMES})
 
 
 @dataclass(frozen=True)
@@ -136,7 +148,7 @@ class BenchConfig:
                                        "(they define its arms)")
 
     def stage_options(self, kind: str, protocol: dict) -> dict:
-        """Task options of a stage of `kind` ("pretrain", "detector", "flow_features", "flow_volume"):
+        """Task options of a stage of `kind` ("pretrain", "occupancy", "detector", "flow_features", "flow_volume"):
         the plan's "mapper" options, then the kind's own, then the benchmark's `protocol` options."""
         return {**self.task_options.get("mapper", {}), **self.task_options.get(kind, {}), **protocol}
 
@@ -187,19 +199,22 @@ def _epochs(epochs: int, min_steps: int, max_steps: int) -> StageRule:
 _PROFILES: dict[tuple[str, bool], dict] = {
     ("tiny", False): dict(train_episodes=48, val_episodes=8, test_episodes=16, label_budgets=(2, 8, None),
                           rules=StageRules(pretrain=_plateau(50, 200, 1500), detector=_epochs(40, 30, 1000),
-                                           flow=_plateau(50, 100, 1000), egomotion=_plateau(50, 100, 1000))),
+                                           flow=_plateau(50, 100, 1000), egomotion=_plateau(50, 100, 1000),
+                                           occupancy=_plateau(50, 100, 1000))),
     ("small", False): dict(train_episodes=64, val_episodes=8, test_episodes=16, label_budgets=(2, 8, None),
                            rules=StageRules(pretrain=_plateau(100, 300, 3000), detector=_epochs(40, 200, 2000),
-                                            flow=_plateau(100, 200, 2000), egomotion=_plateau(100, 200, 2000))),
+                                            flow=_plateau(100, 200, 2000), egomotion=_plateau(100, 200, 2000),
+                                            occupancy=_plateau(200, 400, 4000))),
     ("paper", False): dict(train_episodes=1024, val_episodes=32, test_episodes=100,
                            label_budgets=(8, 32, 128, 512, None),
                            rules=StageRules(pretrain=_plateau(2000, 10_000, 200_000),
                                             detector=_epochs(40, 500, 20_000), flow=_plateau(1000, 5000, 50_000),
-                                            egomotion=_plateau(1000, 5000, 50_000))),
+                                            egomotion=_plateau(1000, 5000, 50_000),
+                                            occupancy=_plateau(1000, 5000, 50_000))),
 }
 _QUICK = dict(train_episodes=4, val_episodes=2, test_episodes=2, label_budgets=(2, None),
               rules=StageRules(pretrain=StageRule.fixed(2), detector=StageRule.fixed(2), flow=StageRule.fixed(2),
-                               egomotion=StageRule.fixed(2)), retrieval_per_example=4,
+                               egomotion=StageRule.fixed(2), occupancy=StageRule.fixed(2)), retrieval_per_example=4,
               detector_variants=(("random", "finetuned"), ("regression", "frozen"), ("contrastive", "frozen"),
                                  ("contrastive", "finetuned")))
 
@@ -216,8 +231,10 @@ def plan_for(preset: str, *, seeds: tuple[int, ...] = (0,), quick: bool = False,
 
 def with_steps(config: BenchConfig, **steps: int) -> BenchConfig:
     """`config` with some stages trained for a fixed number of steps (pretrain=, detector=, flow=,
-    egomotion=) instead of their stopping rule."""
+    egomotion=, occupancy=) instead of their stopping rule."""
     for name, value in steps.items():
+        if name not in STAGE_NAMES:
+            raise BenchConfigError(f"no training stage {name!r}; choose from {STAGE_NAMES}")
         if value < 1:
             raise BenchConfigError(f"steps of stage {name!r} must be >= 1, got {value}")
     return replace(config, rules=replace(config.rules, **{k: StageRule.fixed(v) for k, v in steps.items()}))

@@ -13,6 +13,10 @@ from __future__ import annotations
 import argparse
 import json
 
+# Training stages with a stopping rule, each with its --<stage>-steps flag (services.bench.plan.STAGE_NAMES;
+# kept here so that building the parser does not import torch).
+STAGE_NAMES = ("pretrain", "occupancy", "detector", "flow", "egomotion")
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -55,7 +59,7 @@ def register(subparsers) -> None:
     p.add_argument("--label-budgets", type=_budget, nargs="+", default=None, metavar="N|all",
                    help="labelled training records for the detector, e.g. 2 8 32 all")
     steps = p.add_argument_group("training length (default: each stage's stopping rule in the preset's plan)")
-    for stage in ("pretrain", "detector", "flow", "egomotion"):
+    for stage in STAGE_NAMES:
         steps.add_argument(f"--{stage}-steps", type=_positive_int, default=None, metavar="N",
                            help=f"train the {stage} stage for exactly N steps instead of its stopping rule")
     p.add_argument("--batch-size", type=_positive_int, default=None, help="records per step (default: preset)")
@@ -70,7 +74,7 @@ def register(subparsers) -> None:
     p.add_argument("--task-options", type=_task_options, default=None, metavar="JSON",
                    help='extra task options per kind of stage, e.g. \'{"mapper": {"encoder_full_res": 16}, '
                         '"pretrain": {"coeff_match": 1.0}, "flow_features": {"refine_radius": [3, 1, 3]}}\' '
-                        '(kinds: mapper, pretrain, detector, flow_features, flow_volume; default: none)')
+                        '(kinds: mapper, pretrain, occupancy, detector, flow_features, flow_volume; default: none)')
     p.set_defaults(func=run)
 
 
@@ -94,7 +98,7 @@ def config_from_args(args: argparse.Namespace):
         "batch_size": args.batch_size, "task_options": args.task_options}.items() if v is not None}
     config = plan_for(args.preset, seeds=tuple(range(args.seeds)), quick=args.quick, data_seed=args.data_seed,
                       workers=args.workers, device=args.device, precision=args.precision, **overrides)
-    steps = {s: getattr(args, f"{s}_steps") for s in ("pretrain", "detector", "flow", "egomotion")}
+    steps = {s: getattr(args, f"{s}_steps") for s in STAGE_NAMES}
     steps = {k: v for k, v in steps.items() if v is not None}
     return with_steps(config, **steps) if steps else config
 

@@ -86,8 +86,11 @@ def test_metrics_json_has_every_key(bench_run):
         assert set(claim["per_seed"]) == {"0", "1"}
     det = metrics["detection"]["contrastive/frozen"]
     assert set(det) == {"2", "all"} and set(det["2"]) == {"0.33", "0.5", "0.75"}
-    for cell in (det["2"]["0.5"], metrics["flow"]["zero-motion"]["moving"], metrics["occupancy"]["contrastive"]["acc_all"]):
+    for cell in (det["2"]["0.5"], metrics["flow"]["zero-motion"]["moving"], metrics["occupancy"]["contrastive, occupancy module"]["acc_all"]):
         assert cell["n"] == 2 and 0.0 <= cell["mean"] and cell["std"] >= 0.0
+    # The claim's occupancy module, then each pretraining's own head.
+    assert list(metrics["occupancy"]) == ["contrastive, occupancy module", "regression, pretraining head",
+                                          "contrastive, pretraining head"]
     for arm in ("random", "regression", "contrastive"):
         for dim in ("2d", "3d"):
             p = [metrics["retrieval"][arm][dim][k]["mean"] for k in ("p@1", "p@5", "p@10")]

@@ -74,3 +74,29 @@ def test_cli_task_options_reach_the_plan_and_bad_json_names_the_flag(tmp_path, m
         assert stop.value.code == 2 and "--task-options" in err and why in err
     assert main(base + ["--task-options", '{"flow": {}}']) != 0  # a BenchConfigError: one line, no traceback
     assert "unknown stage kind 'flow'" in capsys.readouterr().err
+
+
+def test_occupancy_stage_gets_the_mapper_options_and_its_own():
+    config = plan_for("tiny", quick=True, task_options={"mapper": {"encoder_full_res": 16},
+                                                        "occupancy": {"input_views": 1}})
+    assert config.stage_options("occupancy", {}) == {"encoder_full_res": 16, "input_views": 1}
+
+
+def test_every_stage_with_a_rule_has_a_steps_flag(tmp_path, monkeypatch):
+    import services.bench.paper as paper
+    from services.bench.plan import STAGE_NAMES, StageRule
+    from services.cli.bench import STAGE_NAMES as CLI_STAGE_NAMES
+
+    assert set(CLI_STAGE_NAMES) == set(STAGE_NAMES) == set(plan_for("small").rules.to_dict())
+    seen = {}
+    monkeypatch.setattr(paper, "run_paper_bench", lambda config, out, **kw: seen.update(config=config) or {"claims": []})
+    assert main(["bench", "paper", "--seeds", "1", "--out", str(tmp_path / "r"), "--occupancy-steps", "7"]) == 0
+    assert seen["config"].rules.occupancy == StageRule.fixed(7)
+    assert seen["config"].rules.flow == plan_for("small").rules.flow
+
+
+def test_a_plan_without_the_occupancy_rule_is_refused_by_name():
+    old = plan_for("tiny", quick=True).to_dict()
+    del old["rules"]["occupancy"]
+    with pytest.raises(BenchConfigError, match="occupancy"):
+        BenchConfig.from_dict(old)
