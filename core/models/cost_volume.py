@@ -142,4 +142,9 @@ def soft_argmax_displacement(cost: torch.Tensor, radius: tuple[int, int, int], b
         raise ShapeError(f"soft_argmax_displacement: cost has {cost.shape[1]} displacements, radius {radius} "
                          f"gives {disp.shape[0]}")
     p = torch.softmax(beta * cost, dim=1)  # B×D×Z×Y×X
-    return torch.einsum("bdzyx,dc->bczyx", p, disp)  # B×3×Z×Y×X
+    B, D = p.shape[:2]
+    # One GEMM over D on p as it lies (B×D×(Z·Y·X)). Why not einsum("bdzyx,dc->bczyx"): it first copies p
+    # into B×Z×Y×X×D order, forward and backward (at the flow recipe's D 147 on the small grid ~80 MB each:
+    # 410 ms per call against 110 ms, one thread; the same sums, bitwise equal there).
+    flow = torch.matmul(disp.t(), p.reshape(B, D, -1))  # B×3×(Z·Y·X)
+    return flow.reshape(B, 3, *p.shape[2:])  # B×3×Z×Y×X

@@ -30,6 +30,21 @@ def test_soft_argmax_matches_the_per_voxel_reference_and_checks_the_radius():
         soft_argmax_displacement(cost, (2, 1, 1), 3.0)
 
 
+def test_soft_argmax_gradients_are_the_per_voxel_references():
+    """Cost and β gradients through the fast form equal autograd through the voxel loop (a radius that
+    differs per axis, so a transposed displacement table would show)."""
+    radius = (2, 1, 0)
+    cost = torch.randn(2, 15, 2, 3, 4, requires_grad=True)
+    beta = torch.tensor(2.5, requires_grad=True)
+    weights = torch.randn(2, 3, 2, 3, 4)
+    (soft_argmax_displacement(cost, radius, beta) * weights).sum().backward()
+    fast = cost.grad.clone(), beta.grad.clone()
+    cost.grad, beta.grad = None, None
+    (_soft_argmax_reference(cost, radius, beta) * weights).sum().backward()
+    torch.testing.assert_close(fast[0], cost.grad, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(fast[1], beta.grad, atol=1e-5, rtol=1e-4)
+
+
 def test_uniform_cost_gives_zero_motion():
     cost = torch.ones(1, 27, 2, 2, 2)  # empty space: every displacement matches equally
     assert soft_argmax_displacement(cost, (1, 1, 1), 10.0).abs().max() < 1e-6
