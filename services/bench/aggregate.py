@@ -70,7 +70,7 @@ def flow_table(per_seed: dict, arms) -> dict:
 
 def occupancy_table(per_seed: dict, rows) -> dict:
     """{row: {score: over seeds}} for the occupancy rows some seed has (plan.OCCUPANCY_ROWS, in that order)."""
-    keys = ("acc_occupied", "acc_free", "acc_all", "iou_occupied")
+    keys = ("acc_occupied", "acc_free", "acc_all", "iou_occupied", "threshold")
     present = [row for row in rows if any(get_path(r, "occupancy", row) for r in per_seed.values())]
     return {row: {k: over_seeds(per_seed, "occupancy", row, k) for k in keys} for row in present}
 

@@ -86,11 +86,14 @@ def test_metrics_json_has_every_key(bench_run):
         assert set(claim["per_seed"]) == {"0", "1"}
     det = metrics["detection"]["contrastive/frozen"]
     assert set(det) == {"2", "all"} and set(det["2"]) == {"0.33", "0.5", "0.75"}
-    for cell in (det["2"]["0.5"], metrics["flow"]["zero-motion"]["moving"], metrics["occupancy"]["contrastive, occupancy module"]["acc_all"]):
+    for cell in (det["2"]["0.5"], metrics["flow"]["zero-motion"]["moving"], metrics["occupancy"]["contrastive, occupancy module, balanced threshold"]["acc_all"]):
         assert cell["n"] == 2 and 0.0 <= cell["mean"] and cell["std"] >= 0.0
     # The claim's occupancy module, then each pretraining's own head.
-    assert list(metrics["occupancy"]) == ["contrastive, occupancy module", "regression, pretraining head",
-                                          "contrastive, pretraining head"]
+    assert list(metrics["occupancy"]) == ["contrastive, occupancy module, balanced threshold",
+                                          "contrastive, occupancy module, threshold 0.5",
+                                          "regression, pretraining head", "contrastive, pretraining head"]
+    # the balanced threshold is one of the grid's, chosen on the validation records
+    assert 0.05 <= metrics["occupancy"]["contrastive, occupancy module, balanced threshold"]["threshold"]["mean"] <= 0.95
     for arm in ("random", "regression", "contrastive"):
         for dim in ("2d", "3d"):
             p = [metrics["retrieval"][arm][dim][k]["mean"] for k in ("p@1", "p@5", "p@10")]

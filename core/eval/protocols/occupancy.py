@@ -3,7 +3,9 @@
 Per record and step t: the map is built from ONE view (`input_view`), and the labels are the union of
 that view's and the next view's (occupied = voxelised points, free = ray traversal; unlabelled voxels
 are ignored). Scores: accuracy for occupied / free / all labelled voxels and occupied IoU (definitions:
-core.eval.occupancy_metrics).
+core.eval.occupancy_metrics). `evaluate` scores one threshold; `scores_by_threshold` many from one pass of
+the model, and `balanced_threshold` picks among them the one whose worse class accuracy is highest (bench
+paper chooses it on its validation records and scores the test records there).
 """
 
 from __future__ import annotations
@@ -28,16 +30,14 @@ class OccupancyEvalConfig:
     threshold: float = 0.5    # P(occupied) above which a voxel counts as occupied
 
 
-@torch.no_grad()
-def evaluate(bundle, records, config: OccupancyEvalConfig = OccupancyEvalConfig(), *, device) -> dict:
-    """{"scores": core.eval.occupancy_metrics.occupancy_scores, "frames", "example": {"prob", "occ",
-    "input"} Z×Y×X arrays of the first frame (prediction, occupied labels, the input view's points)}."""
+# Thresholds `balanced_threshold` chooses among: 0.05, 0.10, ..., 0.95.
+THRESHOLD_GRID = tuple(round(0.05 * k, 2) for k in range(1, 20))
+
+
+def _frames(bundle, records, input_view: int, device):
+    """Per record and step: (record, t, prob 1×1×Z×Y×X, occupied, free 1×1×Z×Y×X bool labels)."""
     grid = bundle.preset.grid
     mapper, head = bundle.modules["mapper"], bundle.modules["occupancy"]
-    input_view = config.input_view
-    counts: dict = {}
-    example = None
-    frames = 0
     for record in records:
         batch = record_batch(record, device)
         T, V = batch["rgb"].shape[1:3]
@@ -51,9 +51,45 @@ def evaluate(bundle, records, config: OccupancyEvalConfig = OccupancyEvalConfig(
             prob = head.probabilities(features)  # 1×1×Z×Y×X
             occ = gt_occupancy(record, t, grid, label_views)[None].to(device) > 0.5
             free = gt_free(record, t, grid, label_views)[None].to(device) > 0.5
-            counts = add_counts(counts, occupancy_counts(prob, occ, free, threshold=config.threshold))
-            frames += 1
-            if example is None:
-                example = {"prob": prob[0, 0].cpu().numpy(), "occ": occ[0, 0].cpu().numpy().astype(np.float32),
-                           "input": gt_occupancy(record, t, grid, v)[0].numpy()}
+            yield record, t, prob, occ, free
+
+
+@torch.no_grad()
+def evaluate(bundle, records, config: OccupancyEvalConfig = OccupancyEvalConfig(), *, device) -> dict:
+    """{"scores": core.eval.occupancy_metrics.occupancy_scores, "frames", "example": {"prob", "occ",
+    "input"} Z×Y×X arrays of the first frame (prediction, occupied labels, the input view's points)}."""
+    counts: dict = {}
+    example = None
+    frames = 0
+    for record, t, prob, occ, free in _frames(bundle, records, config.input_view, device):
+        counts = add_counts(counts, occupancy_counts(prob, occ, free, threshold=config.threshold))
+        frames += 1
+        if example is None:
+            example = {"prob": prob[0, 0].cpu().numpy(), "occ": occ[0, 0].cpu().numpy().astype(np.float32),
+                       "input": gt_occupancy(record, t, bundle.preset.grid, [config.input_view])[0].numpy()}
     return {"scores": occupancy_scores(counts), "frames": frames, "example": example}
+
+
+@torch.no_grad()
+def scores_by_threshold(bundle, records, thresholds=THRESHOLD_GRID, *, input_view: int = 0, device) -> dict:
+    """{threshold: occupancy_scores} over `records`, every threshold from one pass of the model."""
+    counts: dict = {float(th): {} for th in thresholds}
+    for _, _, prob, occ, free in _frames(bundle, records, input_view, device):
+        for th in counts:
+            counts[th] = add_counts(counts[th], occupancy_counts(prob, occ, free, threshold=th))
+    return {th: occupancy_scores(c) for th, c in counts.items()}
+
+
+def balanced_threshold(scores: dict) -> float:
+    """The threshold of `scores_by_threshold` output whose worse class accuracy is highest (the balanced
+    operating point: occupied and free voxels count alike), ties to the one nearest 0.5.
+
+    Why: the class-balanced loss leaves the probabilities' 0.5 point off balance when one class is harder
+    (occupied voxels only the other view sees), so a fixed 0.5 reports the head's bias as much as its
+    features. Choose it on held-out records, never on the records it is then scored on."""
+    def worse(th: float) -> float:
+        s = scores[th]
+        a, b = s["acc_occupied"], s["acc_free"]
+        return -1.0 if a != a or b != b else min(a, b)  # NaN (a class without labels) never wins
+
+    return max(scores, key=lambda th: (worse(th), -abs(th - 0.5)))

@@ -1,0 +1,47 @@
+"""Occupancy scores at many thresholds from one pass, and the balanced threshold chosen from them."""
+
+import math
+
+import pytest
+import torch
+
+from core.bundle import Bundle
+from core.eval.protocols.occupancy import (
+    THRESHOLD_GRID, OccupancyEvalConfig, balanced_threshold, evaluate, scores_by_threshold,
+)
+from core.presets import get_preset
+from core.synthetic import generate_record
+from core.tasks import build_task
+
+TINY = get_preset("tiny")
+
+
+def _scores(pairs):
+    return {th: {"acc_occupied": a, "acc_free": b} for th, (a, b) in pairs.items()}
+
+
+def test_balanced_threshold_maximises_the_worse_class_and_ties_go_to_the_middle():
+    # lowering the threshold trades free accuracy for occupied accuracy; 0.3 is the best worst case
+    scores = _scores({0.2: (0.99, 0.90), 0.3: (0.96, 0.95), 0.4: (0.94, 0.97), 0.5: (0.93, 0.99)})
+    assert balanced_threshold(scores) == 0.3
+    assert balanced_threshold(_scores({0.3: (0.9, 0.9), 0.45: (0.9, 0.9), 0.7: (0.9, 0.9)})) == 0.45
+    # a class without labels (NaN) never wins against a defined one
+    assert balanced_threshold(_scores({0.1: (math.nan, 1.0), 0.5: (0.2, 0.3)})) == 0.5
+
+
+def test_scores_by_threshold_equal_one_evaluation_per_threshold():
+    torch.manual_seed(0)
+    task = build_task("occupancy", TINY).eval()
+    bundle = Bundle(preset=TINY, modules=dict(task.exported_modules()))
+    records = [generate_record(TINY, seed=s, num_frames=1) for s in (5, 6)]
+    thresholds = (0.2, 0.5, 0.8)
+    fast = scores_by_threshold(bundle, records, thresholds, device="cpu")
+    assert list(fast) == list(thresholds)
+    for th in thresholds:
+        slow = evaluate(bundle, records, OccupancyEvalConfig(threshold=th), device="cpu")["scores"]
+        assert fast[th] == pytest.approx(slow, nan_ok=True)
+    # occupied accuracy cannot rise as the threshold does, free accuracy cannot fall
+    occ = [fast[th]["acc_occupied"] for th in thresholds]
+    free = [fast[th]["acc_free"] for th in thresholds]
+    assert occ == sorted(occ, reverse=True) and free == sorted(free)
+    assert THRESHOLD_GRID[0] == 0.05 and THRESHOLD_GRID[-1] == 0.95 and len(THRESHOLD_GRID) == 19
