@@ -38,7 +38,9 @@ from typing import Callable
 import torch
 
 from core.device import resolve_device
-from services.bench.plan import OCCUPANCY_MODULE, PRETRAINED_ARMS, BenchConfig, BenchConfigError
+from services.bench.plan import (
+    OCCUPANCY_MODULE, OCCUPANCY_MODULE_AT_HALF, PRETRAINED_ARMS, BenchConfig, BenchConfigError,
+)
 from services.bench.stages import StageRunner, write_json
 from services.bench.stopping import MARKER as TRAIN_MARKER
 from services.threads import ThreadPlan, plan_threads
@@ -286,7 +288,7 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
                           task_options=config.stage_options("occupancy", {}), init_bundle=pretrained["contrastive"])
     result["occupancy"][OCCUPANCY_MODULE] = evaluate("occupancy/module_contrastive_balanced",
                                                      lambda: balanced_scores(occupancy_dir))
-    result["occupancy"]["contrastive, occupancy module, threshold 0.5"] = evaluate(
+    result["occupancy"][OCCUPANCY_MODULE_AT_HALF] = evaluate(
         "occupancy/module_contrastive", lambda: occupancy_scores(occupancy_dir))
     for arm in PRETRAINED_ARMS:
         result["occupancy"][f"{arm}, pretraining head"] = evaluate(
