@@ -78,19 +78,20 @@ def print_rerun_option(args: argparse.Namespace, recorder) -> None:
               f"open it with `rerun {args.rerun}`)")
 
 
-def iter_records(data_dir: str, max_records: int | None) -> Iterator[dict]:
-    """Records of the dataset in order, at most `max_records` (DataError names a bad shard)."""
+def iter_records(data_dir: str, max_records: int | None, *, flag: str = "--data") -> Iterator[dict]:
+    """Records of the dataset in order, at most `max_records` (DataError names a bad shard; CliError names
+    `flag`, the option that gave the directory)."""
     from core.data.shards import ShardDataset
     from services.cli.main import CliError
 
     if not Path(data_dir).is_dir():
-        raise CliError(f"--data {data_dir}: not a directory")
+        raise CliError(f"{flag} {data_dir}: not a directory")
     if max_records is not None and max_records < 1:
         raise CliError(f"--max-records must be at least 1, got {max_records}")
     dataset = ShardDataset(data_dir)
     n = len(dataset) if max_records is None else min(max_records, len(dataset))
     if n == 0:
-        raise CliError(f"--data {data_dir}: the dataset holds no records")
+        raise CliError(f"{flag} {data_dir}: the dataset holds no records")
     for i in range(n):
         yield dataset[i]
 
@@ -99,18 +100,33 @@ def load_bundle_for_eval(path: str, device, needed: tuple[str, ...], *, data_dir
     """Load the bundle and check it holds the modules an evaluation needs and, given `data_dir`, that
     the dataset was made for the bundle's preset (its grid and cameras; as `n3dmap train` checks)."""
     from core.bundle import load_bundle
-    from core.data.shards import load_manifest
-    from core.errors import BundleError, DataError
+    from core.errors import BundleError
 
-    data_preset = load_manifest(data_dir).get("preset") if data_dir is not None else None
+    if data_dir is not None:
+        _ = _data_preset(data_dir)  # a bad dataset fails before the bundle loads
     bundle = load_bundle(path, device)
     missing = [m for m in needed if m not in bundle.modules]
     if missing:
         raise BundleError(f"--bundle {path}: lacks module(s) {missing} (it holds {sorted(bundle.modules)})")
-    if data_preset is not None and data_preset != bundle.preset.name:
-        raise DataError(f"--data {data_dir} was made with preset {data_preset!r}, but --bundle {path} is a "
-                        f"{bundle.preset.name!r} bundle")
+    if data_dir is not None:
+        check_data_preset(data_dir, bundle, bundle_path=path)
     return bundle
+
+
+def _data_preset(data_dir: str) -> str | None:
+    from core.data.shards import load_manifest
+
+    return load_manifest(data_dir).get("preset")
+
+
+def check_data_preset(data_dir: str, bundle, *, bundle_path: str, flag: str = "--data") -> None:
+    """DataError naming `flag` when the dataset at `data_dir` was made for another preset than the bundle's."""
+    from core.errors import DataError
+
+    data_preset = _data_preset(data_dir)
+    if data_preset is not None and data_preset != bundle.preset.name:
+        raise DataError(f"{flag} {data_dir} was made with preset {data_preset!r}, but --bundle {bundle_path} is a "
+                        f"{bundle.preset.name!r} bundle")
 
 
 def register(subparsers) -> None:

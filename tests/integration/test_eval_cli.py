@@ -14,9 +14,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from core.bundle import save_bundle
+from core.bundle import load_bundle, save_bundle
 from core.data.ground_truth import gt_egomotion, gt_flow
-from core.data.shards import write_dataset
+from core.data.shards import ShardDataset, write_dataset
+from core.eval.protocols.occupancy import balanced_threshold, scores_by_threshold
 from core.geometry import se3
 from core.presets import TINY
 from core.synthetic.generate import generate_record
@@ -99,3 +100,29 @@ def test_eval_occupancy_report_and_errors(setup):
                           str(root / "missing"), "--bundle", str(root / "bundle"), "--out", str(root / "x")],
                          cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "missing" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_eval_occupancy_balanced_threshold_is_chosen_on_other_records(setup):
+    """--balanced-on DIR picks the threshold on DIR's records (the same rule and grid as bench paper) and
+    scores --data with it; the records it scores may not be the ones it chose on."""
+    root, records = setup
+    val = root / "val"
+    if not val.exists():
+        write_dataset(val, [generate_record(TINY, seed=7, moving_ego=True)], split="val", preset_name="tiny",
+                      grid=TINY.grid.to_dict(), generator={"moving_ego": True}, seed=7, shard_bytes=1 << 30)
+    out = root / "occ_balanced"
+    proc = _run(root, "occupancy", "--out", str(out), "--balanced-on", str(val))
+    settings = json.loads((out / "metrics.json").read_text())["settings"]
+    bundle = load_bundle(root / "bundle")
+    expected = balanced_threshold(scores_by_threshold(bundle, list(ShardDataset(val)), device="cpu"))
+    assert settings["threshold"] == pytest.approx(expected)
+    assert settings["threshold_chosen_on"]["data"] == str(val)
+    assert f"threshold {expected:g} (balanced on {val})" in proc.stdout
+    for argv, says in ((["--balanced-on", str(root / "data")], "other records than --data"),
+                       (["--balanced-on", str(root / "nowhere")], "--balanced-on"),
+                       (["--threshold", "1.5"], "--threshold"),
+                       (["--threshold", "0.4", "--balanced-on", str(val)], "not allowed with")):
+        bad = subprocess.run([sys.executable, "-m", "services.cli.main", "eval", "occupancy", "--data",
+                              str(root / "data"), "--bundle", str(root / "bundle"), "--out", str(root / "y"),
+                              *argv], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert bad.returncode == 2 and says in bad.stderr and "Traceback" not in bad.stderr, (argv, bad.stderr)
