@@ -169,18 +169,17 @@ class PretrainTask(nn.Module):
             valid2d = self._valid_pixels(depth[:, target], pix_target, cam_target, (Hr, Wr))
             out["loss_3d"] = view_contrastive_loss(top3d, bottom3d, valid3d, self.cfg.contrastive, self._generator)
             out["loss_2d"] = view_contrastive_loss(top2d, bottom2d, valid2d, self.cfg.contrastive, self._generator)
-            if self.cfg.coeff_local_negatives > 0:
-                out["loss_local_neg"] = local_negative_loss(
-                    top3d, bottom3d, valid3d, radius=self.cfg.local_negative_radius,
-                    samples=self.cfg.contrastive.samples, beta=self.cfg.contrastive.beta,
-                    margin=self.cfg.contrastive.margin, generator=self._generator)
             out["loss_l2_3d"] = dense_l2(top3d, bottom3d, valid3d)
             out["loss_l2_2d"] = dense_l2(top2d, bottom2d, valid2d)
             out["valid_3d"] = valid3d.float().mean()
             out["valid_2d"] = valid2d.float().mean()
             view_loss = (self.cfg.coeff_3d * out["loss_3d"] + self.cfg.coeff_2d * out["loss_2d"]
                          + self.cfg.coeff_l2 * (out["loss_l2_3d"] + out["loss_l2_2d"]))
-            if "loss_local_neg" in out:
+            if self.cfg.coeff_local_negatives > 0:
+                out["loss_local_neg"] = local_negative_loss(
+                    top3d, bottom3d, valid3d, radius=self.cfg.local_negative_radius,
+                    samples=self.cfg.contrastive.samples, beta=self.cfg.contrastive.beta,
+                    margin=self.cfg.contrastive.margin, generator=self._generator)
                 view_loss = view_loss + self.cfg.coeff_local_negatives * out["loss_local_neg"]
         else:
             target_small = F.interpolate(rgb_target, size=(Hr, Wr), mode="area")  # B×3×Hr×Wr

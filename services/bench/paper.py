@@ -274,25 +274,26 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
     # view's map is not what it learned on.
     from core.eval.protocols import occupancy as occupancy_protocol
 
-    def occupancy_scores(bundle_dir: Path, threshold: float = 0.5) -> dict:
-        return occupancy_protocol.evaluate(load_bundle(bundle_dir, device), test_records,
+    def occupancy_scores(bundle, threshold: float = 0.5) -> dict:
+        return occupancy_protocol.evaluate(bundle, test_records,
                                            occupancy_protocol.OccupancyEvalConfig(input_view=0, threshold=threshold),
                                            device=device)["scores"]
 
     def balanced_scores(bundle_dir: Path) -> dict:
-        on_val = occupancy_protocol.scores_by_threshold(load_bundle(bundle_dir, device), val_records, device=device)
+        bundle = load_bundle(bundle_dir, device)
+        on_val = occupancy_protocol.scores_by_threshold(bundle, val_records, device=device)
         threshold = occupancy_protocol.balanced_threshold(on_val)
-        return {**occupancy_scores(bundle_dir, threshold), "threshold": threshold,
+        return {**occupancy_scores(bundle, threshold), "threshold": threshold,
                 "val_acc_occupied": on_val[threshold]["acc_occupied"], "val_acc_free": on_val[threshold]["acc_free"]}
     occupancy_dir = train("occupancy_contrastive", task="occupancy", rule=rules.occupancy,
                           task_options=config.stage_options("occupancy", {}), init_bundle=pretrained["contrastive"])
     result["occupancy"][OCCUPANCY_MODULE] = evaluate("occupancy/module_contrastive_balanced",
                                                      lambda: balanced_scores(occupancy_dir))
     result["occupancy"][OCCUPANCY_MODULE_AT_HALF] = evaluate(
-        "occupancy/module_contrastive", lambda: occupancy_scores(occupancy_dir))
+        "occupancy/module_contrastive", lambda: occupancy_scores(load_bundle(occupancy_dir, device)))
     for arm in PRETRAINED_ARMS:
         result["occupancy"][f"{arm}, pretraining head"] = evaluate(
-            f"occupancy/{arm}", lambda a=arm: occupancy_scores(pretrained[a]))
+            f"occupancy/{arm}", lambda a=arm: occupancy_scores(load_bundle(pretrained[a], device)))
 
     # 3D flow over the frozen features of each pretrained arm (the paper's protocol: the arms differ only
     # in the maps the flow module compares), and n3dmap's default flow, which compares the fused input

@@ -27,7 +27,7 @@ the report gives no verdicts).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 
 from core.errors import N3dmapError
 from services.bench.stopping import StageRule
@@ -51,10 +51,6 @@ DEFAULT_VARIANTS: tuple[tuple[str, str], ...] = (
 TASK_OPTION_KINDS = ("mapper", "pretrain", "occupancy", "detector", "flow_features", "flow_volume")
 # Options the benchmark sets itself to define its arms and protocol.
 PROTOCOL_OPTIONS = ("objective", "inputs", "labels", "freeze_features")
-
-
-# Training stages that have a stopping rule (StageRules' fields; the CLI's --<name>-steps).
-STAGE_NAMES = ("pretrain", "detector", "flow", "egomotion", "occupancy")
 
 
 class BenchConfigError(N3dmapError):
@@ -85,6 +81,10 @@ class StageRules:
         if missing:
             raise BenchConfigError(f"the plan's rules lack {missing} (a plan of an older n3dmap); use a new --out")
         return StageRules(**{name: StageRule(**d[name]) for name in STAGE_NAMES})
+
+
+# Training stages that have a stopping rule (StageRules' fields; the CLI's --<name>-steps).
+STAGE_NAMES = tuple(f.name for f in fields(StageRules))
 
 
 @dataclass(frozen=True)

@@ -102,14 +102,13 @@ def load_bundle_for_eval(path: str, device, needed: tuple[str, ...], *, data_dir
     from core.bundle import load_bundle
     from core.errors import BundleError
 
-    if data_dir is not None:
-        _ = _data_preset(data_dir)  # a bad dataset fails before the bundle loads
+    data_preset = _data_preset(data_dir) if data_dir is not None else None  # a bad dataset fails first
     bundle = load_bundle(path, device)
     missing = [m for m in needed if m not in bundle.modules]
     if missing:
         raise BundleError(f"--bundle {path}: lacks module(s) {missing} (it holds {sorted(bundle.modules)})")
     if data_dir is not None:
-        check_data_preset(data_dir, bundle, bundle_path=path)
+        _check_preset(data_preset, data_dir, bundle, bundle_path=path, flag="--data")
     return bundle
 
 
@@ -121,9 +120,12 @@ def _data_preset(data_dir: str) -> str | None:
 
 def check_data_preset(data_dir: str, bundle, *, bundle_path: str, flag: str = "--data") -> None:
     """DataError naming `flag` when the dataset at `data_dir` was made for another preset than the bundle's."""
+    _check_preset(_data_preset(data_dir), data_dir, bundle, bundle_path=bundle_path, flag=flag)
+
+
+def _check_preset(data_preset: str | None, data_dir: str, bundle, *, bundle_path: str, flag: str) -> None:
     from core.errors import DataError
 
-    data_preset = _data_preset(data_dir)
     if data_preset is not None and data_preset != bundle.preset.name:
         raise DataError(f"{flag} {data_dir} was made with preset {data_preset!r}, but --bundle {bundle_path} is a "
                         f"{bundle.preset.name!r} bundle")
