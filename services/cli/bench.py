@@ -49,7 +49,7 @@ def register(subparsers) -> None:
                    help="train every model with N seeds (0..N-1; default 3, the fewest a verdict needs); the report "
                         "shows mean ± std and each seed's value")
     p.add_argument("--parallel-seeds", type=_positive_int, default=None, metavar="N",
-                   help="seeds trained at once, each in its own process (default: as many as usable CPUs). The "
+                   help="seeds trained at once, each in its own process (default: one per seed, at most the usable CPUs). The "
                         "CPUs are shared out; more processes than CPUs run one thread each, time-sliced (e.g. 3 "
                         "seeds on 2 CPUs: all end together, instead of the last seed alone on one CPU)")
     p.add_argument("--quick", action="store_true",

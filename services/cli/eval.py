@@ -1,6 +1,6 @@
 """`n3dmap eval KIND ...`: evaluate a bundle (or prediction files) on a dataset and write a report.
 
-Every kind writes REPORT_DIR/report.md, metrics.json and PNG plots through one writer
+Every kind writes REPORT_DIR/report.md and metrics.json, and PNG plots (all but retrieval), through one writer
 (`services.reports.Report`). A kind lives in a module listed in `EVAL_KINDS` that exposes
 `register(kind_subparsers)`; most build their parser with `add_eval_parser` (the shared options
 `--data --bundle --out --max-records --device`) and set `func`. Adding a kind (detection, moving, retrieval, all) is one line here plus its module.
