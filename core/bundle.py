@@ -11,7 +11,8 @@ bundle.json:
 weights.safetensors: every module's state_dict (parameters and buffers) under "<name>.<key>".
 
 Later jobs `load_bundle` an initialising bundle, add modules and save the union with `save_bundle`
-(`merged_modules` keeps the parent's provenance under "parents").
+(`merged_modules` keeps the parent's provenance under "parents"). `merge_bundles` joins bundles trained
+apart (e.g. a benchmark's flow and egomotion stages) into one to serve (`n3dmap bundle merge`).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Mapping, Sequence
 
 import torch
 from safetensors import SafetensorError
@@ -187,3 +189,82 @@ def merged_modules(parent: Bundle, new: dict[str, nn.Module], *, replace: bool =
 def parent_provenance(parent: Bundle) -> dict:
     """Provenance entry describing `parent`, for the child's provenance["parents"] list."""
     return {"path": parent.path, "version": parent.version, "provenance": parent.meta.get("provenance", {})}
+
+
+# Module kinds that read the mapper's features: such a module is only meaningful beside the mapper it was
+# trained on. (egomotion reads the fused input volumes; flow reads features only with inputs="features".)
+MAPPER_READER_KINDS = ("projector", "net2d", "occupancy_head", "detector3d")
+
+
+def reads_mapper(entry: dict) -> bool:
+    """Whether a bundle.json module entry ({"kind", "config"}) reads the mapper's feature maps."""
+    kind, config = entry.get("kind"), entry.get("config") or {}
+    return kind in MAPPER_READER_KINDS or (kind == "flow3d" and config.get("inputs") == "features")
+
+
+def same_module(a: nn.Module, b: nn.Module) -> bool:
+    """Same registered kind, constructor config and every state tensor bit for bit."""
+    if kind_of(a) != kind_of(b) or a.config() != b.config():
+        return False
+    sa, sb = a.state_dict(), b.state_dict()
+    return sa.keys() == sb.keys() and all(
+        sa[k].shape == sb[k].shape and sa[k].dtype == sb[k].dtype and torch.equal(sa[k].cpu(), sb[k].cpu()) for k in sa)
+
+
+def merge_bundles(bundles: Sequence[Bundle], *, take: Mapping[str, int] | None = None,
+                  ) -> tuple[dict[str, nn.Module], dict[str, int]]:
+    """The union of several bundles' modules: ({name: module}, {name: index in `bundles` it came from}).
+
+    All bundles must share one preset (grid, widths). A name held by several bundles is taken once, from the
+    first, when every copy is the same module bit for bit (`same_module`); where copies differ, `take[name]`
+    (an index into `bundles`) must say which — never silently the first: an occupancy head or a flow module
+    over features reads the mapper it was trained on. `take` may also pick among equal copies. BundleError
+    names the bundles and modules otherwise.
+    """
+    take = dict(take or {})
+    if len(bundles) < 2:
+        raise BundleError(f"merging needs at least two bundles, got {len(bundles)}")
+    first = bundles[0]
+    for b in bundles[1:]:
+        if b.preset.to_dict() != first.preset.to_dict():
+            raise BundleError(f"bundles {first.path} (preset {first.preset.name}) and {b.path} (preset "
+                              f"{b.preset.name}) have different presets; only bundles of one preset merge")
+    holders: dict[str, list[int]] = {}
+    for i, b in enumerate(bundles):
+        for name in b.modules:
+            holders.setdefault(name, []).append(i)
+    for name, index in take.items():
+        if name not in holders:
+            raise BundleError(f"--take {name}: no bundle holds a module {name!r}; they hold {sorted(holders)}")
+        if index not in holders[name]:
+            raise BundleError(f"--take {name}: bundle {bundles[index].path if 0 <= index < len(bundles) else index} "
+                              f"has no module {name!r}; it is in {[bundles[i].path for i in holders[name]]}")
+    modules: dict[str, nn.Module] = {}
+    sources: dict[str, int] = {}
+    for name, indices in holders.items():
+        if name in take:
+            source = take[name]
+        else:
+            differ = [i for i in indices[1:] if not same_module(bundles[indices[0]].modules[name], bundles[i].modules[name])]
+            if differ:
+                raise BundleError(f"module {name!r} differs between {[bundles[i].path for i in indices]}; say which "
+                                  f"to keep with --take {name}=B (the modules that read a mapper need the one "
+                                  "they were trained on)")
+            source = indices[0]
+        modules[name], sources[name] = bundles[source].modules[name], source
+    return modules, sources
+
+
+def foreign_mapper_readers(bundles: Sequence[Bundle], sources: Mapping[str, int]) -> list[str]:
+    """Modules of a merge that read a mapper (`reads_mapper`) but come from a bundle whose own mapper was
+    not the one kept and differs from it: they will read features they were not trained on."""
+    if "mapper" not in sources:
+        return []
+    kept = bundles[sources["mapper"]].modules["mapper"]
+    foreign = []
+    for name, index in sources.items():
+        own = bundles[index].modules.get("mapper")
+        if name != "mapper" and reads_mapper(bundles[index].meta.get("modules", {}).get(name, {})) \
+                and own is not None and own is not kept and not same_module(own, kept):
+            foreign.append(name)
+    return sorted(foreign)

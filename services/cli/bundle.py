@@ -1,4 +1,6 @@
-"""`n3dmap bundle info B [--json]`: describe a model bundle (version, preset, grid, modules, lineage, metrics)."""
+"""`n3dmap bundle info B [--json]`: describe a model bundle (version, preset, grid, modules, lineage, metrics).
+`n3dmap bundle merge B1 B2 [...] --out OUT [--take MODULE=B]`: join bundles trained apart into one.
+"""
 
 from __future__ import annotations
 
@@ -64,6 +66,44 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _merge(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from core.bundle import (BUNDLE_JSON, foreign_mapper_readers, load_bundle, merge_bundles, parent_provenance,
+                             save_bundle)
+    from services.cli.errors import CliError
+    from services.training.job import git_commit
+
+    paths = [Path(b) for b in args.bundles]
+    out = Path(args.out)
+    if (out / BUNDLE_JSON).exists():
+        raise CliError(f"--out {out} already holds a bundle; merge into a new directory (nothing was written)")
+    if any(out.resolve() == p.resolve() for p in paths):
+        raise CliError(f"--out {out} is one of the bundles being merged; merge into a new directory")
+    take: dict[str, int] = {}
+    for item in args.take or []:
+        name, sep, where = item.partition("=")
+        if not sep or not name or not where:
+            raise CliError(f"--take {item!r}: expected MODULE=B, with B one of the bundles given")
+        matches = [i for i, p in enumerate(paths) if p.resolve() == Path(where).resolve()]
+        if not matches:
+            raise CliError(f"--take {item!r}: {where} is not one of the bundles given ({', '.join(map(str, paths))})")
+        take[name] = matches[0]
+    bundles = [load_bundle(p, "cpu") for p in paths]
+    modules, sources = merge_bundles(bundles, take=take)
+    provenance = {"task": "merge", "sources": {name: str(paths[i]) for name, i in sorted(sources.items())},
+                  "git_commit": git_commit(), "parents": [parent_provenance(b) for b in bundles]}
+    save_bundle(out, modules=modules, preset=bundles[0].preset, provenance=provenance)
+    width = max(len(n) for n in modules)
+    print(f"merged {len(modules)} module(s) into {out}:")
+    for name in sorted(modules):
+        print(f"  {name:<{width}}  from {paths[sources[name]]}")
+    for name in foreign_mapper_readers(bundles, sources):
+        print(f"warning: {name} (from {paths[sources[name]]}) reads mapper features, but the mapper kept is "
+              f"{paths[sources['mapper']]}'s, not the one it was trained on")
+    return 0
+
+
 def register(subparsers) -> None:
     bundle = subparsers.add_parser("bundle", help="inspect model bundles", description=__doc__.splitlines()[0])
     actions = bundle.add_subparsers(dest="action", metavar="ACTION", required=True)
@@ -72,3 +112,15 @@ def register(subparsers) -> None:
     info.add_argument("--json", action="store_true",
                       help="print the full record as JSON (with every ancestor's whole provenance)")
     info.set_defaults(func=_info)
+    merge = actions.add_parser(
+        "merge", help="join bundles trained apart into one (e.g. a benchmark's flow and egomotion stages)",
+        description="Write one bundle holding every module of the given bundles (all of one preset). A module "
+                    "that several bundles hold is kept once when the copies are equal bit for bit; where they "
+                    "differ, --take says which to keep. Modules that read mapper features (occupancy, detector, "
+                    "flow over features) need the mapper they were trained on: a warning names any that would not "
+                    "get it.")
+    merge.add_argument("bundles", metavar="B", nargs="+", help="bundle directories (at least two)")
+    merge.add_argument("--out", required=True, help="new bundle directory (refused if it already holds a bundle)")
+    merge.add_argument("--take", action="append", metavar="MODULE=B",
+                       help="keep MODULE from bundle B (one of those given) where the copies differ; repeatable")
+    merge.set_defaults(func=_merge)
