@@ -207,8 +207,8 @@ def same_module(a: nn.Module, b: nn.Module) -> bool:
     if kind_of(a) != kind_of(b) or a.config() != b.config():
         return False
     sa, sb = a.state_dict(), b.state_dict()
-    return sa.keys() == sb.keys() and all(
-        sa[k].shape == sb[k].shape and sa[k].dtype == sb[k].dtype and torch.equal(sa[k].cpu(), sb[k].cpu()) for k in sa)
+    # torch.equal is False for other shapes; the dtype is compared apart since it compares values only.
+    return sa.keys() == sb.keys() and all(sa[k].dtype == sb[k].dtype and torch.equal(sa[k].cpu(), sb[k].cpu()) for k in sa)
 
 
 def merge_bundles(bundles: Sequence[Bundle], *, take: Mapping[str, int] | None = None,
@@ -221,7 +221,7 @@ def merge_bundles(bundles: Sequence[Bundle], *, take: Mapping[str, int] | None =
     over features reads the mapper it was trained on. `take` may also pick among equal copies. BundleError
     names the bundles and modules otherwise.
     """
-    take = dict(take or {})
+    take = take or {}
     if len(bundles) < 2:
         raise BundleError(f"merging needs at least two bundles, got {len(bundles)}")
     first = bundles[0]
