@@ -8,8 +8,8 @@ bash scripts/setup.sh > /dev/null
 mkdir -p out
 .venv/bin/python .bench-carry/carry.py unpack out/bench-small
 commit="${1:-HEAD}"
-git worktree prune
 rm -rf /work/bench-wt
+git worktree prune
 git worktree add --detach /work/bench-wt "$commit" > /dev/null
 ln -sfn "$PWD/.venv" /work/bench-wt/.venv
 cat > out/bench-small.sh <<EOS

@@ -161,7 +161,10 @@ def load_init_bundle(exported: dict[str, torch.nn.Module], bundle_dir: str, *, p
 def _scalar_metrics(out: dict) -> dict[str, torch.Tensor]:
     if "loss" not in out:
         raise TrainingError(f"task forward returned no 'loss' (keys: {sorted(out)})")
-    return {k: v.detach().float().reshape(()) for k, v in out.items()
+    # Every scalar onto the loss's device: the loop stacks them into one tensor (one all-reduce), and a
+    # task that builds a metric with torch.tensor(x) leaves it on the CPU while a CUDA run's loss is not.
+    device = out["loss"].device
+    return {k: v.detach().float().reshape(()).to(device) for k, v in out.items()
             if isinstance(v, torch.Tensor) and v.numel() == 1}
 
 

@@ -116,3 +116,18 @@ def test_unknown_precision_is_a_config_error(tmp_path):
 
     with pytest.raises(TrainConfigError, match="--precision must be one of"):
         _config(tmp_path, precision="fp16")
+
+
+def test_scalar_metrics_follow_the_loss_device():
+    """A task may build a metric with torch.tensor(x) (CPU) while a CUDA run's loss is on the GPU; the loop
+    stacks every scalar into one tensor, so each must land on the loss's device (the meta device stands in
+    for CUDA here). Tensors of several elements are not metrics and are left out."""
+    import torch
+
+    from services.training.loop import _scalar_metrics
+
+    out = {"loss": torch.zeros((), device="meta"), "acc": torch.tensor(0.5), "count": torch.tensor([3]),
+           "map": torch.zeros(2, 2), "note": "not a tensor"}
+    metrics = _scalar_metrics(out)
+    assert sorted(metrics) == ["acc", "count", "loss"]
+    assert all(v.device.type == "meta" and v.shape == () and v.dtype == torch.float32 for v in metrics.values())
