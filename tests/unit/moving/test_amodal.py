@@ -209,3 +209,29 @@ def test_coherent_heading_against_the_resultant_written_out():
     assert coherent_heading(np.zeros((3, 4))) is None
     one_way = np.tile(np.array([[2.0], [5.0], [-2.0]]), (1, 6))               # all parallel, any vertical part
     assert np.allclose(coherent_heading(one_way), np.array([1.0, -1.0]) / math.sqrt(2))
+
+
+def test_a_swollen_component_shrinks_to_the_box_slack_about_its_centre():
+    # A component that fits the maxima (rule 1: 6.5 × 3.5 m < 1.6 × 4.4 m) but is wider and longer than
+    # any car: the top of a 6.5 × 3.5 m slab of voxel centres, as flow spilled around a car would leave.
+    # Slow reference: the box written out — each side min(seen, 1.25 × prior), centred where the slab is.
+    xs = np.arange(0.0, 6.5, VOXEL) + VOXEL / 2
+    zs = np.arange(10.0, 13.5, VOXEL) + VOXEL / 2
+    pts = np.array([[x, -1.0, z] for x in xs for z in zs])
+    heading = np.array([1.0, 0.0])                        # coherent flow along +x: the length is along x
+    box = amodal_box(pts, viewpoint=np.array([3.25, -1.0, 0.0]), prior=PRIOR, voxel=VOXEL, pad=0.0, heading=heading)
+    seen_length, seen_width = xs[-1] - xs[0], zs[-1] - zs[0]          # 6.25, 3.25 between voxel centres
+    assert seen_length > 1.25 * PRIOR.length and seen_width > 1.25 * PRIOR.width
+    assert box[3] == pytest.approx(1.25 * PRIOR.length) and box[5] == pytest.approx(1.25 * PRIOR.width)
+    assert box[0] == pytest.approx(xs.mean()) and box[2] == pytest.approx(zs.mean())
+    assert abs(box[6]) < 1e-9                             # length along x
+    # a looser slack keeps more of it; a slack of 1 is the prior itself; below 1 is refused
+    loose = SizePrior.from_size(CAR[0], CAR[2], CAR[1])
+    loose = SizePrior(**{**loose.to_dict(), "box_slack": 1.5})
+    box = amodal_box(pts, viewpoint=None, prior=loose, voxel=VOXEL, pad=0.0, heading=heading)
+    assert box[3] == pytest.approx(seen_length) and box[5] == pytest.approx(1.5 * PRIOR.width)
+    tight = SizePrior(**{**loose.to_dict(), "box_slack": 1.0})
+    box = amodal_box(pts, viewpoint=None, prior=tight, voxel=VOXEL, pad=0.0, heading=heading)
+    assert box[3] == pytest.approx(PRIOR.length) and box[5] == pytest.approx(PRIOR.width)
+    with pytest.raises(ValueError, match="box_slack"):
+        SizePrior(**{**loose.to_dict(), "box_slack": 0.9})
