@@ -38,6 +38,12 @@ from services.streaming.sources import synthetic_frames
 from tests.moving_reference import reference_moving_objects
 
 ATOL = 1e-5
+# CUDA too where there is a GPU (CI has none): the stream's fast path against the reference on that device.
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA"))]
+# Tolerances (tensors, published boxes and velocities) per device. On CUDA the two paths run the same convolutions
+# at other batch sizes, so cuDNN picks other algorithms (and TF32 by default): measured on an H200, flows differed by
+# up to 4e-4 voxels and velocities by 3e-3 m/s between the paths (1e-5 with TF32 off), against bit-equality on CPU.
+TOLERANCE = {"cpu": (ATOL, 1e-4), "cuda": (2e-3, 1e-2)}
 STEP_S = 0.25  # the frames' clock: 0.25 s apart (exact in binary, so intervals compare exactly)
 KEYS = ("flow", "ref0_T_ref1", "boxes", "scores", "valid", "velocities")
 
@@ -90,31 +96,37 @@ def decoded(frames, *, stamped: bool = True):
             for i, f in enumerate(frames)]
 
 
-def pair_of(view0, view1) -> dict:
-    return pair_tensors([stack_views([view0], "a")], [stack_views([view1], "b")], torch.device("cpu"))
+def pair_of(view0, view1, device: str = "cpu") -> dict:
+    return pair_tensors([stack_views([view0], "a")], [stack_views([view1], "b")], torch.device(device))
 
 
-def assert_same(fast: dict, slow: dict, keys=KEYS) -> None:
+def assert_same(fast: dict, slow: dict, keys=KEYS, atol: float = ATOL) -> None:
     for key in keys:
         assert fast[key].shape == slow[key].shape, key
-        assert torch.allclose(fast[key].float(), slow[key].float(), atol=ATOL), key
+        assert fast[key].device == slow[key].device, key
+        assert torch.allclose(fast[key].float(), slow[key].float(), atol=atol), key
 
 
 def test_moving_step_with_its_cache_equals_the_reference(bundle_dir, frames):
-    bundle = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu")).bundle
+    # CPU only: it compares the gated flow voxel by voxel, and on CUDA the two paths' flows differed by more than
+    # 2e-3 somewhere in every one of 5 runs on an H200 (not located; a voxel whose occupancy sits at the gate's
+    # threshold would do it, and this test's random heads put many there). The processor test below compares what
+    # is published (boxes, velocities, egomotion) on CUDA too.
+    device = "cpu"
+    bundle = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device=device)).bundle
     views = decoded(frames)
     previous = None
     for t in range(1, len(frames)):
-        pair = pair_of(views[t - 1], views[t])
+        pair = pair_of(views[t - 1], views[t], device)
         if t == 3:  # the idle-time path: the encoding made ahead of the step
             previous = encode_previous(bundle, **{k[:-1]: v for k, v in pair.items() if k.endswith("0")}, cached=previous)
         timings: dict = {}
         fast = moving_step(bundle, **pair, previous=previous, dt=STEP_S, timings=timings)
         slow = reference_moving_objects(bundle, pair, stabilize="egomotion", dt=STEP_S)
-        assert not torch.allclose(slow["cam0_T_cam1"], torch.eye(4), atol=1e-3)  # stabilisation matters
+        assert not torch.allclose(slow["cam0_T_cam1"].cpu(), torch.eye(4), atol=1e-3)  # stabilisation matters
         assert slow["flow"].abs().max() > 0.2 and (slow["flow"] == 0).any()  # flow, gated in places
         assert slow["valid"].any()  # boxes to compare
-        assert_same(fast, slow, KEYS + ("cam0_T_cam1",))
+        assert_same(fast, slow, KEYS + ("cam0_T_cam1",), atol=TOLERANCE[device][0])
         assert {"ego_volume", "egomotion", "flow", "boxes"} <= set(timings)
         # frame 1's map is made only for a flow module that compares maps
         assert ("map_current" in timings) == (bundle.modules["flow"].inputs != "volume")
@@ -167,9 +179,10 @@ def test_moving_step_with_poses_and_without_egomotion(bundle_dir, frames):
     assert_same(fast, reference_moving_objects(bundle, pair, stabilize="poses", dt=STEP_S))
 
 
-def test_processor_answers_equal_the_reference(bundle_dir, frames):
+@pytest.mark.parametrize("device", DEVICES)
+def test_processor_answers_equal_the_reference(bundle_dir, frames, device):
     """The bridge's processor (cache + idle preparation) against the reference pair and egomotion."""
-    runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
+    runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device=device))
     processor = RuntimeProcessor(runtime, min_score=-1.0)
     state = CameraState()
     views = decoded(frames)
@@ -181,12 +194,13 @@ def test_processor_answers_equal_the_reference(bundle_dir, frames):
         if t == 0:
             assert outputs.egomotion is None and len(got.boxes) == 0
         else:
-            pair = pair_of(views[t - 1], frame)
+            pair = pair_of(views[t - 1], frame, device)
             slow = reference_moving_objects(runtime.bundle, pair, stabilize="egomotion", dt=STEP_S)
             sent = inference_pb2.EgomotionResponse.FromString(outputs.egomotion)
             np.testing.assert_allclose(codecs.tensor_to_numpy(sent.cam0_T_cam1, "cam0_T_cam1"),
-                                       estimate_egomotion(runtime.bundle, **pair)["cam0_T_cam1"][0], atol=ATOL)
-            _assert_boxes_equal(got, slow)
+                                       estimate_egomotion(runtime.bundle, **pair)["cam0_T_cam1"][0].cpu(),
+                                       atol=TOLERANCE[device][0])
+            _assert_boxes_equal(got, slow, atol=TOLERANCE[device][1])
             boxes_seen += len(got.boxes)
         state.advance(frame)
         if t % 2 == 0:  # half the steps find the previous frame encoded ahead, half encode it themselves
@@ -242,16 +256,17 @@ def test_look_ahead_answers_equal_the_reference(bundle_dir, frames, level):
     assert stats["egomotion"]["p50"] < stats["ahead_egomotion"]["p50"]
 
 
-def _assert_boxes_equal(got: types_pb2.Detections, slow: dict) -> None:
-    """The published boxes = the reference's valid rows, best first."""
+def _assert_boxes_equal(got: types_pb2.Detections, slow: dict, atol: float = 1e-4) -> None:
+    """The published boxes = the reference's valid rows, best first (boxes and velocities within `atol`)."""
+    slow = {k: slow[k].cpu() for k in ("valid", "scores", "boxes", "velocities")}
     keep = slow["valid"][0]
     order = torch.argsort(-slow["scores"][0][keep], stable=True)
     assert len(got.boxes) == int(keep.sum())
     for box, ref_box, score, velocity in zip(got.boxes, slow["boxes"][0][keep][order], slow["scores"][0][keep][order],
                                              slow["velocities"][0][keep][order]):
-        np.testing.assert_allclose([box.x, box.y, box.z, box.lx, box.ly, box.lz, box.yaw], ref_box.numpy(), atol=1e-4)
-        np.testing.assert_allclose([box.vx, box.vy, box.vz], velocity.numpy(), atol=1e-4)
-        assert box.score == pytest.approx(float(score), abs=1e-5)
+        np.testing.assert_allclose([box.x, box.y, box.z, box.lx, box.ly, box.lz, box.yaw], ref_box.numpy(), atol=atol)
+        np.testing.assert_allclose([box.vx, box.vy, box.vz], velocity.numpy(), atol=atol)
+        assert box.score == pytest.approx(float(score), abs=atol / 10)
 
 
 def test_the_interval_comes_from_the_timestamps(bundle_dir, frames):
