@@ -55,16 +55,28 @@ def retrieval_table(per_seed: dict, arms) -> dict:
                   for dim in ("2d", "3d")} for arm in arms}
 
 
+# The flow evaluation's other gates (core.eval.protocols.flow, core.pipeline.flow_gate), as extra rows "ARM, SUFFIX".
+# Why: each arm's flow is gated by its own pretraining's occupancy head, so the gated rows (the claims' and the
+# pipelines') compare the gates as much as the flow modules; the ungated rows compare the flow modules alone.
+FLOW_GATE_ROWS = {"model_filled": "filled gate", "model_raw": "no gate"}
+
+
 def flow_table(per_seed: dict, arms) -> dict:
-    """Rows "zero-motion", one per arm (flow over that arm's features, free voxels zeroed) and, when run,
-    "input volumes" (flow over the fused input volumes): full/static/moving L1 EPE."""
+    """Rows "zero-motion", one per arm (flow over that arm's features, free voxels zeroed), when run "input
+    volumes" (flow over the fused input volumes), then for each of those that some seed evaluated with the
+    other gates, "ARM, filled gate" and "ARM, no gate" (FLOW_GATE_ROWS): full/static/moving L1 EPE."""
     cols = {"full": "epe_l1_full", "static": "epe_l1_static", "moving": "epe_l1_moving", "epe3d": "epe3d"}
     rows = {"zero-motion": {c: over_seeds(per_seed, "flow", arms[-1], "zero_motion", k) for c, k in cols.items()}}
-    for arm in arms:
-        rows[arm] = {c: over_seeds(per_seed, "flow", arm, "model", k) for c, k in cols.items()}
+    sources = {arm: arm for arm in arms}
     if any(get_path(r, "flow", "volume") for r in per_seed.values()):
         # n3dmap's default flow module, over the fused input volumes instead of an arm's features
-        rows["input volumes"] = {c: over_seeds(per_seed, "flow", "volume", "model", k) for c, k in cols.items()}
+        sources["input volumes"] = "volume"
+    for row, key in sources.items():
+        rows[row] = {c: over_seeds(per_seed, "flow", key, "model", k) for c, k in cols.items()}
+    for row, key in sources.items():
+        for gate, suffix in FLOW_GATE_ROWS.items():
+            if any(get_path(r, "flow", key, gate) for r in per_seed.values()):
+                rows[f"{row}, {suffix}"] = {c: over_seeds(per_seed, "flow", key, gate, k) for c, k in cols.items()}
     return rows
 
 

@@ -40,6 +40,24 @@ def test_flow_table_adds_the_input_volume_row_when_present():
     assert rows["input volumes"]["moving"]["mean"] == 1.5 and rows["input volumes"]["moving"]["n"] == 2
 
 
+def test_flow_table_adds_the_other_gates_rows_after_the_gated_ones():
+    def scores(gated, filled=None, raw=None):
+        out = {"zero_motion": {"epe_l1_moving": 6.0}, "model": {"epe_l1_moving": gated}}
+        if filled is not None:
+            out.update(model_filled={"epe_l1_moving": filled}, model_raw={"epe_l1_moving": raw})
+        return out
+
+    per_seed = {"0": {"flow": {"regression": scores(5.0, 4.0, 3.0), "contrastive": scores(3.0, 3.5, 3.5),
+                               "volume": scores(2.0)}},
+                "1": {"flow": {"regression": scores(5.0), "contrastive": scores(4.0, 2.5, 1.5), "volume": scores(1.0)}}}
+    rows = flow_table(per_seed, ("regression", "contrastive"))
+    assert list(rows) == ["zero-motion", "regression", "contrastive", "input volumes",
+                          "regression, filled gate", "regression, no gate", "contrastive, filled gate",
+                          "contrastive, no gate"]   # no other-gate rows for the volume flow: no seed has them
+    assert rows["regression, no gate"]["moving"]["values"] == [3.0] and rows["regression"]["moving"]["n"] == 2
+    assert rows["contrastive, filled gate"]["moving"]["mean"] == 3.0 and rows["contrastive, no gate"]["moving"]["mean"] == 2.5
+
+
 def test_plan_rejects_bad_options():
     assert plan_for("tiny", quick=True).label_budgets == (2, None)
     with pytest.raises(BenchConfigError):
