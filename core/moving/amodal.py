@@ -26,21 +26,23 @@ visible extent is the object's, across it only the surface's thickness (one voxe
    whole may fall short of it. The assignment that fits the prior better wins; a tie gives the length to
    the side along the line of sight, the one occlusion cuts short.
 4. Each bird's-eye side seen clearly short of the prior's (below GROW_BELOW of it) grows to the prior,
-   and each side longer than `box_slack` × the prior's shrinks to that, about the visible centre: a
-   component that fits the maxima of rule 1 may still be swollen by flow spilled onto neighbouring voxels
-   (the quick start's stream, at 1 m voxels, published boxes 4 × 4 m and up to 7.4 × 5.1 m for cars
-   1.6-2.1 m wide), and no box of an object is larger than objects are. Measured on the quick start's tiny chain (40 steps per stage) with `n3dmap eval moving`
-   on 32 records of `data generate --preset tiny --seed 7 --moving-ego mixed` (size priors estimated as
-   usual: model 5.0 × 2.5 m, true flow 5.0 × 2.0 m): the model's boxes reached 8.0 m long and 7.0 m wide
-   (p90 5.2 / 4.0) without the cap, 6.2 / 3.1 with it; AP3D@0.5 stayed the same (model 0.272 / 0.305,
-   true flow 0.881 / 0.865, static / moving camera); the model's AP3D@0.25 static went 0.411 → 0.397.
+   and each side longer than `box_slack` × the prior's shrinks to that, about the visible box's centre:
+   a component that fits the maxima of rule 1 may still be swollen by flow spilled onto neighbouring
+   voxels (the quick start's stream, at 1 m voxels, published boxes 4 × 4 m and up to 7.4 × 5.1 m for
+   cars 1.6-2.1 m wide), and a box's footprint should stay within what objects of the class measure (the
+   height is not capped: rule 1's maximum bounds it). Measured on the quick start's tiny chain (40 steps
+   per stage) with `n3dmap eval moving` on 32 records of `data generate --preset tiny --seed 7
+   --moving-ego mixed` (size priors estimated as usual: model 5.0 × 2.5 m, true flow 5.0 × 2.0 m): the
+   model's boxes reached 8.0 m long and 7.0 m wide (p90 5.2 / 4.0) without the cap, 6.2 / 3.1 with it;
+   AP3D@0.5 stayed the same (model 0.272 / 0.305, true flow 0.881 / 0.865, static / moving camera); the
+   model's AP3D@0.25 static went 0.411 → 0.397.
    A side grown to the prior grows away from the camera along its axis (the hidden part of an object
-   lies behind its visible faces); a side the camera looks straight across grows on both ends. Vertically, objects stand on the ground:
-   with a ground plane the box reaches down to it (the ground gate removes the voxels just above the
-   ground, so a component rarely holds an object's bottom) and up to the visible top, or to the prior's
-   height when that is clearly short; without a plane, or when the plane lies further below the visible
-   top than the prior's maximum height (a frame tilted against gravity), the visible vertical extent
-   stays.
+   lies behind its visible faces); a side the camera looks straight across grows on both ends.
+   Vertically, objects stand on the ground: with a ground plane the box reaches down to it (the ground
+   gate removes the voxels just above the ground, so a component rarely holds an object's bottom) and up
+   to the visible top, or to the prior's height when that is clearly short; without a plane, or when the
+   plane lies further below the visible top than the prior's maximum height (a frame tilted against
+   gravity), the visible vertical extent stays.
 
 `SizePrior` holds the plausible size; `estimate_size_prior` estimates it without labels from the
 visible boxes of many components (the 0.6 quantile of their extents).

@@ -141,7 +141,7 @@ def _flow_section(report: Report, flow: dict) -> None:
                 "of each pretraining (rows contrastive and regression), free voxels zeroed by the occupancy head. "
                 "The row 'input volumes' is n3dmap's default flow module, which compares the fused "
                 "occupancy+RGB input volumes instead of feature maps (README: small feature maps do not carry "
-                "object motion); the zero-motion row predicts no motion anywhere. Each row's gate is its own "
+                "object motion); the zero-motion row predicts no motion anywhere. Each model row's gate is its own "
                 "bundle's occupancy head (for an arm: its pretraining's), so the gated rows (the claims' and the "
                 "pipelines') compare the gates as much as the flow modules: the rows 'filled gate' (flow kept within "
                 "one voxel of an occupied moving voxel) and 'no gate' compare the flow modules more directly.")

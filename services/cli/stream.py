@@ -40,7 +40,8 @@ def register(subparsers) -> None:
     bridge.add_argument("--min-score", type=float, default=0.0, help="drop boxes scored below this")
     bridge.add_argument("--size-prior", type=positive_float, nargs=3, default=None, metavar=("L", "W", "H"),
                         help="amodal boxes of this object size in metres (length, width, height): oversized "
-                             "components are split or dropped, partial ones completed (default: visible boxes); "
+                             "components are split or dropped, partial ones completed, footprints capped at 1.25 × it "
+                             "(default: visible boxes); "
                              "`n3dmap eval moving` estimates it without labels and prints it in its report")
     bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
     bridge.add_argument("--level", action="store_true",

@@ -15,7 +15,8 @@ presets voxels are 1 m and 0.5 m, so a box fitted to voxels is coarse and IoU 0.
 
 Boxes are amodal by default (`size_prior="auto"`, core.moving.amodal): for each 3D method a size prior
 is estimated from that method's own components over the evaluated pairs — no labels — and every
-component is split or dropped when oversized and grown to a whole object away from the camera.
+component is split or dropped when oversized and grown to a whole object away from the camera (and a
+box's bird's-eye sides are at most `SizePrior.box_slack`, 1.25, × the prior's).
 `size_prior=None` keeps the visible boxes; a SizePrior gives the prior.
 """
 

@@ -103,7 +103,8 @@ def build_report(bundle, records, config: MovingEvalConfig = MovingEvalConfig(),
         report.text(f"Boxes of `{method}`: " + ("visible boxes (no size prior)." if prior is None else
                     f"amodal, size prior length {prior['length']:.2f} m, width {prior['width']:.2f} m, height "
                     f"{prior['height']:.2f} m (components above {prior['max_length']:.2f} × {prior['max_width']:.2f} "
-                    f"× {prior['max_height']:.2f} m are split or dropped)."))
+                    f"× {prior['max_height']:.2f} m are split or dropped; box sides at most "
+                    f"{prior['box_slack']:.2f} × the length and width)."))
     for cam in CAMERAS:
         report.heading(f"{cam.capitalize()} camera ({result['pairs'][cam]} pairs)")
         if result["pairs"][cam] == 0:
