@@ -82,6 +82,6 @@ class OccupancyTask(nn.Module):
         scores = occupancy_scores(occupancy_counts(torch.sigmoid(logits.detach()), occupied, free))
         # A class with no labels in this batch gives NaN; the training loop stops on any non-finite value
         # and every rank must report the same keys, so an undefined score is reported as 0.
-        metrics = {k: torch.tensor(float(scores[k]), device=loss.device).nan_to_num(0.0)
+        metrics = {k: torch.tensor(float(scores[k])).nan_to_num(0.0)
                    for k in ("acc_occupied", "acc_free", "acc_all", "iou_occupied")}
         return {"loss": loss, **metrics}
