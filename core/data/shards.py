@@ -158,6 +158,11 @@ def _is_dataset_file(name: str) -> bool:
     return name == MANIFEST_NAME or bool(_SHARD_RE.match(name)) or name.endswith(_PARTIAL_SUFFIX)
 
 
+def _remove_partials(out: Path) -> None:
+    for partial in out.glob("*" + _PARTIAL_SUFFIX):
+        partial.unlink(missing_ok=True)
+
+
 def check_output_dir(out_dir: str | os.PathLike, *, overwrite: bool) -> None:
     """DataError unless `out_dir` is absent, an empty directory, or `overwrite` is set (a cheap check
     callers run before expensive work; write_dataset runs it again)."""
@@ -191,9 +196,7 @@ def write_dataset(out_dir: str | os.PathLike, records: Iterable[Mapping[str, np.
         raise DataError(f"shard_bytes must be positive, got {shard_bytes}")
     check_output_dir(out, overwrite=overwrite)
     out.mkdir(parents=True, exist_ok=True)
-    for stale in out.iterdir():
-        if stale.name.endswith(_PARTIAL_SUFFIX):
-            stale.unlink()
+    _remove_partials(out)  # left by an earlier writer that was killed
     try:
         json.dumps({"grid": grid, "generator": generator, "seed": seed})
     except (TypeError, ValueError) as e:
@@ -237,8 +240,10 @@ def write_dataset(out_dir: str | os.PathLike, records: Iterable[Mapping[str, np.
     except BaseException:
         if writer is not None:
             writer.abort()
-        for entry in shards:
-            (out / (entry["filename"] + _PARTIAL_SUFFIX)).unlink(missing_ok=True)
+        # Every temporary file in `out` is this call's (stale ones went above). Sweeping them all, not
+        # just those of `writer` and `shards`, also removes a shard whose writer was interrupted (Ctrl-C)
+        # after creating its file but before being assigned: CI hit that window once.
+        _remove_partials(out)
         raise
     if count == 0:
         raise DataError("no records to write (the record source was empty)")

@@ -143,6 +143,26 @@ def test_overwrite_replaces_the_dataset(tmp_path, records):
     assert manifest["num_records"] == 2 and len(ShardDataset(tmp_path / "ds", verify=True)) == 2
 
 
+def test_interrupt_while_a_shard_is_being_opened_leaves_no_file(tmp_path, records, monkeypatch):
+    """Ctrl-C after a shard's file is created but before its writer exists (CI hit this window once):
+    the interrupt propagates and no file is left, neither the finished first shard nor the new one."""
+    import core.data.shards as shards
+
+    opened = []
+    real_open = tarfile.open
+
+    def open_then_interrupt(*args, **kwargs):
+        opened.append(1)
+        if len(opened) == 2:  # the second shard's file exists now; its _ShardWriter is not assigned yet
+            raise KeyboardInterrupt
+        return real_open(*args, **kwargs)
+
+    monkeypatch.setattr(shards.tarfile, "open", open_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        _write(tmp_path / "ds", records)
+    assert len(opened) == 2 and list((tmp_path / "ds").iterdir()) == []
+
+
 # ----------------------------------------------------------------------------- corruption
 
 @pytest.fixture
