@@ -59,19 +59,21 @@ def detector_stage(arm: str, mode: str, budget: int | None) -> str:
 
 
 def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds: int = 1,
-                    threads: int | None = None, log: Callable[[str], None] = print) -> dict:
+                    threads: int | None = None, rerun_changed: bool = False,
+                    log: Callable[[str], None] = print) -> dict:
     """Run (or continue) the whole benchmark into `out_dir`; returns the report's metrics dict.
 
     parallel_seeds: seeds trained at the same time, each in a worker process; more than the usable CPUs
     run one thread each, time-sliced (3 seeds on 2 CPUs then end together, instead of the third training
     alone on one CPU while the other idles); threads: torch threads per process instead of the plan's share
-    (may oversubscribe)."""
+    (may oversubscribe); rerun_changed: `out_dir` may hold a benchmark of another plan, whose stages that
+    the change touches are redone (services.bench.replan) and the others kept."""
     from services.bench.report import write_bench_report
 
     started = time.monotonic()
     out = Path(out_dir)
     stages = StageRunner(out / "work", log)
-    _check_same_plan(out / "work" / "plan.json", config)
+    _check_same_plan(out / "work" / "plan.json", config, rerun_changed=rerun_changed, log=log)
     device = resolve_device(config.device)
     log(f"[bench] paper benchmark, preset {config.preset}, seeds {list(config.seeds)}, device {device}"
         f"{', bf16 training' if config.precision == 'bf16' else ''}, "
@@ -107,7 +109,7 @@ def run_one_seed(out_dir: str | Path, seed: int, *, log: Callable[[str], None] =
     if seed not in config.seeds:
         raise BenchConfigError(f"seed {seed} is not in the plan's seeds {list(config.seeds)}")
     stages = StageRunner(out / "work", log)
-    data = {split: stages.dir(f"data/{split}") for split in ("train", "val", "test")}
+    data = _record_data_stages(stages, config)
     _seed_stages(stages, config, seed, data, _load_records(data["test"]), _load_records(data["val"]),
                  resolve_device(config.device))
 
@@ -171,8 +173,10 @@ def _stopping(out: Path, config: BenchConfig) -> dict:
     return found
 
 
-def _check_same_plan(path: Path, config: BenchConfig) -> None:
-    """A rerun into the same directory must use the same plan (else its stages would be mixed)."""
+def _check_same_plan(path: Path, config: BenchConfig, *, rerun_changed: bool = False,
+                     log: Callable[[str], None] = print) -> None:
+    """A rerun into the same directory must use the same plan (else its stages would be mixed), unless
+    `rerun_changed`: then the stages the change touches are deleted first (services.bench.replan)."""
     from services.bench.plan import BenchConfigError
 
     current = {k: v for k, v in config.to_dict().items() if k not in ("seeds", "workers", "device")}
@@ -185,8 +189,14 @@ def _check_same_plan(path: Path, config: BenchConfig) -> None:
         earlier.setdefault("task_options", {})  # plans written before the option ran the tasks' defaults
         if earlier != current:
             changed = sorted(k for k in set(earlier) | set(current) if earlier.get(k) != current.get(k))
-            raise BenchConfigError(f"{path.parent.parent} holds a benchmark with another plan "
-                                   f"(differs in {changed}); use a new --out or the same options")
+            if not rerun_changed:
+                raise BenchConfigError(f"{path.parent.parent} holds a benchmark with another plan "
+                                       f"(differs in {changed}); use a new --out, the same options, or "
+                                       "--rerun-changed to redo only the stages the change touches")
+            from services.bench.replan import forget_changed
+
+            log(f"[bench] plan changed in {changed}")
+            forget_changed(BenchConfig.from_dict(json.loads(path.read_text())), config, path.parent, log)
     write_json(path, config.to_dict())
 
 
@@ -199,16 +209,40 @@ def _load_records(data_dir: Path) -> list[dict]:
 
 # ----------------------------------------------------------------------------- data
 
+def _data_specs(config: BenchConfig) -> dict[str, dict]:
+    """{"train" | "test" | "val": the arguments of services.bench.data.generate_split} (also each stage's spec)."""
+    return {"train": dict(preset=config.preset, episodes=config.train_episodes, seed=config.data_seed, split="train"),
+            "test": dict(preset=config.preset, episodes=config.test_episodes, seed=config.data_seed + 1, split="val"),
+            "val": dict(preset=config.preset, episodes=config.val_episodes, seed=config.data_seed + 2, split="val")}
+
+
 def _data_stages(stages: StageRunner, config: BenchConfig) -> dict:
     from services.bench.data import generate_split
 
-    train = stages.run("data/train", DATA_MARKER, lambda d: generate_split(
-        d, preset=config.preset, episodes=config.train_episodes, seed=config.data_seed, split="train"))
-    test = stages.run("data/test", DATA_MARKER, lambda d: generate_split(
-        d, preset=config.preset, episodes=config.test_episodes, seed=config.data_seed + 1, split="val"))
-    val = stages.run("data/val", DATA_MARKER, lambda d: generate_split(
-        d, preset=config.preset, episodes=config.val_episodes, seed=config.data_seed + 2, split="val"))
-    return {"train": train, "val": val, "test": test}
+    return {split: stages.run(f"data/{split}", DATA_MARKER, lambda d, a=args: generate_split(d, **a), spec=args)
+            for split, args in _data_specs(config).items()}
+
+
+def _record_data_stages(stages: StageRunner, config: BenchConfig) -> dict:
+    """The data stages' directories, their digests recorded without running them (a seed worker: the
+    parent made the data)."""
+    for split, args in _data_specs(config).items():
+        stages.record(f"data/{split}", spec=args)
+    return {split: stages.dir(f"data/{split}") for split in _data_specs(config)}
+
+
+# Plan fields a training stage's output depends on besides its own task, options, rule and inputs, and the
+# ones each kind of evaluation reads besides the data and its bundles (the stage digests of
+# services.bench.stages; the data's fields reach every stage through the data stages' digests, `seeds` are
+# in the names, and `workers` / `device` are not part of a plan's identity, as in _check_same_plan).
+TRAINING_PLAN_FIELDS = ("preset", "train_episodes", "val_episodes", "data_seed", "batch_size", "precision", "quick")
+EVAL_PLAN_FIELDS = {"retrieval": ("retrieval_per_example", "retrieval_cube"),
+                    "moving": ("moving_iou", "flow2d_threshold_px", "flow2d_min_pixels")}
+
+
+def _plan_fields(config: BenchConfig, names: tuple[str, ...]) -> dict:
+    plan = config.to_dict()
+    return {name: plan[name] for name in names}
 
 
 # ----------------------------------------------------------------------------- one seed
@@ -231,11 +265,24 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
             # A label budget trains on the first N records, as `n3dmap train detector --labels N` does.
             source = data_dir if label_budget is None else labelled_subset(data_dir, d, label_budget, log=print)
             train_stage(config, run_dir=d, seed=seed, data_dir=source, heldout_records=val_records, **kw)
-        return stages.run(f"{s}/{name}", TRAIN_MARKER, run) / SELECTED
+        unknown = set(kw) - {"task", "rule", "task_options", "init_bundle", "freeze", "batch_size"}
+        if unknown:  # each must be in the stage's spec below, or a changed value would not rerun the stage
+            raise TypeError(f"train(): no stage spec for {sorted(unknown)}")
+        init = kw.get("init_bundle")
+        spec = {"task": kw["task"], "rule": kw["rule"].to_dict(), "task_options": kw.get("task_options") or {},
+                "freeze": list(kw.get("freeze", ())), "batch_size": kw.get("batch_size"), "label_budget": label_budget,
+                "plan": _plan_fields(config, TRAINING_PLAN_FIELDS)}
+        after = [stages.name_of(data_dir), stages.name_of(data["val"]), *([stages.name_of(init)] if init else [])]
+        return stages.run(f"{s}/{name}", TRAIN_MARKER, run, spec=spec, after=after) / SELECTED
 
-    def evaluate(name: str, fn: Callable[[], dict]) -> dict:
-        stage_dir = stages.run(f"{s}/eval/{name}", EVAL_MARKER, lambda d: write_json(d / EVAL_MARKER, _jsonable(fn())))
-        return json.loads((stage_dir / EVAL_MARKER).read_text())
+    def evaluate(name: str, fn: Callable[[], dict], reads: tuple[Path, ...] = ()) -> dict:
+        """Evaluation stage `name`: fn's metrics; reads: the bundles (training stages' outputs) fn loads."""
+        kind = name.split("/")[0]
+        after = [stages.name_of(data["test"]), stages.name_of(data["val"]), *(stages.name_of(r) for r in reads)]
+        stage_dir = stages.run(f"{s}/eval/{name}", EVAL_MARKER, lambda d: write_json(d / EVAL_MARKER, _jsonable(fn())),
+                               spec={"plan": _plan_fields(config, ("preset", *EVAL_PLAN_FIELDS.get(kind, ())))},
+                               after=after)
+        return {} if stages.dry else json.loads((stage_dir / EVAL_MARKER).read_text())
 
     pretrained = {arm: train(f"pretrain_{arm}", task="pretrain", rule=rules.pretrain,
                              task_options=config.stage_options("pretrain", {"objective": arm}))
@@ -255,7 +302,8 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
                                               config.budget_records(budget)))
             result["detection"][f"{arm}/{mode}/{budget_name(budget)}"] = evaluate(
                 f"detection/{arm}_{mode}_L{budget_name(budget)}",
-                lambda b=bundle_dir: evaluations.detection(load_bundle(b, device), test_records, device=device))
+                lambda b=bundle_dir: evaluations.detection(load_bundle(b, device), test_records, device=device),
+                reads=(bundle_dir,))
 
     # Retrieval per arm (random: an untrained, seeded model).
     for arm in ("random", *PRETRAINED_ARMS):
@@ -264,7 +312,8 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
                       else load_bundle(pretrained[a], device))
             return evaluations.retrieval(bundle, test_records, device=device, per_example=config.retrieval_per_example,
                                          cube=config.retrieval_cube, seed=seed)
-        result["retrieval"][arm] = evaluate(f"retrieval/{arm}", retrieval)
+        result["retrieval"][arm] = evaluate(f"retrieval/{arm}", retrieval,
+                                            reads=() if arm == "random" else (pretrained[arm],))
 
     # Occupancy from one view (the paper's protocol). The claim reads the occupancy module trained the way
     # it is tested (a map of one view, labels from it and one other view; `n3dmap train occupancy`), mapper
@@ -288,12 +337,14 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
     occupancy_dir = train("occupancy_contrastive", task="occupancy", rule=rules.occupancy,
                           task_options=config.stage_options("occupancy", {}), init_bundle=pretrained["contrastive"])
     result["occupancy"][OCCUPANCY_MODULE] = evaluate("occupancy/module_contrastive_balanced",
-                                                     lambda: balanced_scores(occupancy_dir))
+                                                     lambda: balanced_scores(occupancy_dir), reads=(occupancy_dir,))
     result["occupancy"][OCCUPANCY_MODULE_AT_HALF] = evaluate(
-        "occupancy/module_contrastive", lambda: occupancy_scores(load_bundle(occupancy_dir, device)))
+        "occupancy/module_contrastive", lambda: occupancy_scores(load_bundle(occupancy_dir, device)),
+        reads=(occupancy_dir,))
     for arm in PRETRAINED_ARMS:
         result["occupancy"][f"{arm}, pretraining head"] = evaluate(
-            f"occupancy/{arm}", lambda a=arm: occupancy_scores(load_bundle(pretrained[a], device)))
+            f"occupancy/{arm}", lambda a=arm: occupancy_scores(load_bundle(pretrained[a], device)),
+            reads=(pretrained[arm],))
 
     # 3D flow over the frozen features of each pretrained arm (the paper's protocol: the arms differ only
     # in the maps the flow module compares), and n3dmap's default flow, which compares the fused input
@@ -309,7 +360,8 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
                                freeze=("mapper",))
     for arm in (*PRETRAINED_ARMS, VOLUME_FLOW):
         result["flow"][arm] = evaluate(f"flow/{arm}", lambda a=arm: flow_protocol.evaluate(
-            load_bundle(flows[a], device), test_records, device=device, moving_threshold=1e-3)["scores"])
+            load_bundle(flows[a], device), test_records, device=device, moving_threshold=1e-3)["scores"],
+            reads=(flows[arm],))
 
     # Egomotion vs ICP and identity, on the test pairs whose camera moves.
     from core.eval.moving_protocol import camera_setting
@@ -321,7 +373,7 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
         ego_config = egomotion_protocol.EgomotionEvalConfig(perturb_deg=0.0, perturb_m=0.0, seed=seed, icp=True)
         return egomotion_protocol.summarize(egomotion_protocol.evaluate(load_bundle(ego_dir, device), moving_cam,
                                                                         ego_config, device=device))
-    result["egomotion"] = evaluate("egomotion/moving_camera", egomotion_metrics)
+    result["egomotion"] = evaluate("egomotion/moving_camera", egomotion_metrics, reads=(ego_dir,))
 
     # Moving objects: each flow bundle stabilised with the poses, the contrastive-feature and the
     # input-volume ones also with the trained egomotion module; the 2.5D baselines come with the first.
@@ -339,7 +391,7 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
                    "input volumes, egomotion module": with_egomotion(volume)}
         return evaluations.moving(bundles, test_records, device=device, iou=config.moving_iou,
                                   threshold_px=config.flow2d_threshold_px, min_pixels=config.flow2d_min_pixels)
-    result["moving"] = evaluate("moving/all", moving_metrics)
+    result["moving"] = evaluate("moving/all", moving_metrics, reads=(*flows.values(), ego_dir))
     return result
 
 

@@ -5,16 +5,22 @@ evaluation's metrics.json); markers are written last (atomically), so a run cut 
 that stage only — and a training stage even resumes from its own last checkpoint. Every stage's wall
 time is kept in WORK/<name>/stage.json (so a later run that skips it still reports what it cost) and
 appended to WORK/stages.jsonl.
+
+Each stage also gets a digest of what determines its output: its own `spec` (task, options, rule, …) and
+the digests of the stages it reads (`after`). A digest is a pure function of the plan, so two plans can be
+compared stage by stage without running anything (`dry=True`: `run` only records the digest); that is how
+`bench paper --rerun-changed` finds the stages a changed plan touches (services.bench.replan).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Mapping, Sequence
 
 
 def write_json(path: Path, value) -> None:
@@ -33,17 +39,39 @@ class StageRunner:
     log: Callable[[str], None] = print
     seconds: dict[str, float] = field(default_factory=dict)   # stage -> wall time (this or an earlier run)
     ran: list[str] = field(default_factory=list)               # stages this invocation actually ran
+    dry: bool = False                                          # record digests only; run and create nothing
+    digests: dict[str, str] = field(default_factory=dict)      # stage -> digest of its spec and its inputs'
 
     def __post_init__(self) -> None:
         self.work = Path(self.work)
-        self.work.mkdir(parents=True, exist_ok=True)
+        if not self.dry:
+            self.work.mkdir(parents=True, exist_ok=True)
 
     def dir(self, name: str) -> Path:
         return self.work / name
 
-    def run(self, name: str, marker: str, fn: Callable[[Path], None]) -> Path:
-        """Run `fn(stage_dir)` unless `stage_dir/marker` exists; returns stage_dir."""
+    def name_of(self, path: Path) -> str:
+        """The stage whose directory holds `path` (a stage's output, e.g. its selected bundle)."""
+        for parent in (Path(path), *Path(path).parents):
+            name = parent.relative_to(self.work).as_posix() if parent.is_relative_to(self.work) else None
+            if name in self.digests:
+                return name
+        raise KeyError(f"{path} is not the output of a stage run so far")
+
+    def record(self, name: str, *, spec: Mapping | None = None, after: Sequence[str] = ()) -> str:
+        """Record (and return) stage `name`'s digest without running it (`run` does this first)."""
+        # the name too: it carries the seed and what an evaluation computes (two evaluations may read the same)
+        self.digests[name] = stage_digest({"stage": name, **(spec or {})}, [self.digests[a] for a in after])
+        return self.digests[name]
+
+    def run(self, name: str, marker: str, fn: Callable[[Path], None], *, spec: Mapping | None = None,
+            after: Sequence[str] = ()) -> Path:
+        """Run `fn(stage_dir)` unless `stage_dir/marker` exists; returns stage_dir. spec: JSON-serialisable
+        settings that determine the stage's output; after: the stages (run before) whose outputs it reads."""
+        self.record(name, spec=spec, after=after)
         stage_dir = self.dir(name)
+        if self.dry:
+            return stage_dir
         done = stage_dir / marker
         info_path = stage_dir / "stage.json"
         if done.exists():
@@ -70,6 +98,12 @@ class StageRunner:
         with open(self.work / "stages.jsonl", "a") as f:
             f.write(json.dumps({"stage": name, "seconds": round(seconds, 3), "status": status,
                                 "time": time.strftime("%Y-%m-%dT%H:%M:%S")}) + "\n")
+
+
+def stage_digest(spec: Mapping, inputs: Sequence[str]) -> str:
+    """sha256 of a stage's spec and its inputs' digests (canonical JSON: key order does not matter)."""
+    text = json.dumps({"spec": spec, "inputs": list(inputs)}, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def _read_seconds(path: Path) -> float:

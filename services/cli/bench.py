@@ -4,7 +4,8 @@
 
 Everything lands in REPORT_DIR: report.md, metrics.json and PNG plots at the top, every stage's
 dataset, run and metrics under REPORT_DIR/work/. Rerunning the same command continues a cut-off run
-(finished stages are skipped, a training stage resumes from its last checkpoint). See
+(finished stages are skipped, a training stage resumes from its last checkpoint); `--rerun-changed`
+continues it under a changed plan, redoing only the stages the change touches (services/bench/replan.py). See
 services/bench/paper.py for the stages and services/bench/plan.py for the per-preset plans.
 """
 
@@ -75,6 +76,10 @@ def register(subparsers) -> None:
                    help='extra task options per kind of stage, e.g. \'{"mapper": {"encoder_full_res": 16}, '
                         '"pretrain": {"coeff_match": 1.0}, "flow_features": {"refine_radius": [3, 1, 3]}}\' '
                         '(kinds: mapper, pretrain, occupancy, detector, flow_features, flow_volume; default: none)')
+    p.add_argument("--rerun-changed", action="store_true",
+                   help="REPORT_DIR may hold a benchmark of another plan: redo only the stages the change "
+                        "touches (their settings or inputs differ) and keep the rest; without it a changed "
+                        "plan is refused")
     p.set_defaults(func=run)
 
 
@@ -109,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
 
     config = config_from_args(args)
     parallel = args.parallel_seeds if args.parallel_seeds is not None else min(len(config.seeds), usable_cpus())
-    metrics = run_paper_bench(config, args.out, parallel_seeds=parallel, threads=args.threads)
+    metrics = run_paper_bench(config, args.out, parallel_seeds=parallel, threads=args.threads,
+                              rerun_changed=args.rerun_changed)
     for claim in metrics["claims"]:
         print(f"  {claim['id']}: {claim['verdict']} ({claim['reason']}; {claim['ours']})")
     return 0

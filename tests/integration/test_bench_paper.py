@@ -1,12 +1,14 @@
 """`n3dmap bench paper --preset tiny --quick` as a real process, two seeds in two worker processes, with
 per-stage task options (--task-options, reaching every stage they name): every stage runs, the report holds every table and metrics.json every key, each claim is stated with
 its numbers per seed, the thread plan is printed and fits the CPUs, and a rerun skips every finished
-stage (resume). The quick profile trains for 2 steps per stage, so its report must give no verdicts:
+stage (resume) while a changed plan is refused unless `--rerun-changed`, which redoes only the stages
+the change touches. The quick profile trains for 2 steps per stage, so its report must give no verdicts:
 every claim is "not judged" with `holds: null`.
 """
 
 import json
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -32,12 +34,14 @@ TASK_OPTIONS = {"mapper": {"encoder_full_res": 4}, "pretrain": {"coeff_match": 0
                 "flow_features": {"refine_radius": [2, 1, 2], "refine_aggregate": [1, 1, 1]}}
 
 
-def _bench(out: Path) -> subprocess.CompletedProcess:
+def _bench(out: Path, *, options: dict = TASK_OPTIONS, extra: tuple[str, ...] = (),
+           check: bool = True) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "services.cli.main", "bench", "paper", "--preset", "tiny", "--quick",
            "--seeds", "2", "--parallel-seeds", "2", "--out", str(out), "--device", "cpu",
-           "--task-options", json.dumps(TASK_OPTIONS)]
+           "--task-options", json.dumps(options), *extra]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    if check:
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return proc
 
 
@@ -149,3 +153,26 @@ def test_thread_plan_is_printed_and_fits_the_cpus(bench_run):
         assert int(cpus) == usable_cpus() and int(processes) * int(threads) <= int(cpus)
     workers = re.findall(r"seed (\d): worker pid \d+", first.stdout)
     assert sorted(workers) == ["0", "1"]
+
+
+def test_changed_plan_is_refused_unless_rerun_changed_redoes_only_what_it_touches(bench_run, tmp_path):
+    out, _ = bench_run
+    copy = tmp_path / "report"
+    shutil.copytree(out, copy)
+    options = {**TASK_OPTIONS, "flow_features": {"refine_radius": [1, 1, 1], "refine_aggregate": [1, 1, 1]}}
+    refused = _bench(copy, options=options, check=False)
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr, refused.stderr[-2000:]
+    assert "differs in ['task_options']" in refused.stderr and "--rerun-changed" in refused.stderr
+    journal = copy / "work" / "stages.jsonl"
+    before = len(journal.read_text().splitlines())
+    rerun = _bench(copy, options=options, extra=("--rerun-changed",))
+    assert "[bench] plan changed in ['task_options']" in rerun.stdout
+    # Only the arms' flow stages and what reads them ran again, in both seeds (their workers' journal lines).
+    appended = [json.loads(l) for l in journal.read_text().splitlines()[before:]]
+    ran = {e["stage"] for e in appended if e["status"] == "ran"}
+    assert ran == {f"seed{seed}/{stage}" for seed in (0, 1) for stage in (
+        "flow_regression", "flow_contrastive", "eval/flow/regression", "eval/flow/contrastive", "eval/moving/all")}
+    bundle = json.loads((copy / "work" / "seed0" / "flow_contrastive" / "bundle" / "bundle.json").read_text())
+    assert bundle["modules"]["flow"]["config"]["refine_radius"] == [1, 1, 1]
+    assert json.loads((copy / "work" / "plan.json").read_text())["task_options"] == options
+    assert json.loads((copy / "metrics.json").read_text())["metrics"]["config"]["task_options"] == options

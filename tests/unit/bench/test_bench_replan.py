@@ -1,0 +1,97 @@
+"""`bench paper --rerun-changed`: which stages a changed plan touches (services.bench.replan), found by
+walking both plans dry. The expected sets are written out by hand from the stage graph in
+services/bench/paper.py's docstring: that list is the slow, obvious reference."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+
+from services.bench.plan import plan_for, with_steps
+from services.bench.replan import changed_stages, forget_changed, stage_digests
+from services.bench.stages import StageRunner, stage_digest
+
+
+
+def _detectors(plan) -> set[str]:
+    return {f"detector_{arm}_{mode}_L{'all' if budget is None else budget}"
+            for arm, mode in plan.detector_variants for budget in plan.label_budgets}
+
+
+@pytest.fixture
+def plan():
+    return plan_for("tiny", quick=True, seeds=(0,))
+
+
+def _with_options(plan, **options):
+    return replace(plan, task_options={**plan.task_options, **options})
+
+
+def test_digest_is_canonical_and_depends_on_spec_and_inputs():
+    assert stage_digest({"a": 1, "b": [1, 2]}, ["x"]) == stage_digest({"b": [1, 2], "a": 1}, ["x"])
+    assert stage_digest({"a": 1}, ["x"]) != stage_digest({"a": 2}, ["x"])
+    assert stage_digest({"a": 1}, ["x"]) != stage_digest({"a": 1}, ["y"])
+    assert stage_digest({"a": 1}, ["x", "y"]) != stage_digest({"a": 1}, ["y", "x"])
+
+
+def test_dry_runner_records_without_running_or_writing(tmp_path):
+    stages = StageRunner(tmp_path / "work", log=lambda _: None, dry=True)
+    ran = []
+    stages.run("a", "done", lambda d: ran.append(d), spec={"k": 1})
+    stages.run("b", "done", lambda d: ran.append(d), after=["a"])
+    assert ran == [] and not (tmp_path / "work").exists() and set(stages.digests) == {"a", "b"}
+    assert stages.name_of(tmp_path / "work" / "b" / "selected") == "b"
+    with pytest.raises(KeyError):
+        stages.name_of(tmp_path / "work" / "c")
+
+
+def test_every_stage_has_a_digest_and_an_unchanged_plan_changes_nothing(plan, tmp_path):
+    digests = stage_digests(plan, tmp_path)
+    trained = {"pretrain_regression", "pretrain_contrastive", "occupancy_contrastive", "flow_regression",
+               "flow_contrastive", "flow_volume", "egomotion", *_detectors(plan)}
+    assert {n for n in digests if n.startswith("seed0/") and "/eval/" not in n} == {f"seed0/{t}" for t in trained}
+    assert len(set(digests.values())) == len(digests)  # no two stages alike
+    assert changed_stages(plan, plan, tmp_path) == []
+    # seeds, workers and device are no part of a stage's identity
+    assert changed_stages(plan, replace(plan, workers=2, device="cuda"), tmp_path) == []
+
+
+def test_a_feature_flow_option_touches_the_arms_flow_and_what_reads_it(plan, tmp_path):
+    new = _with_options(plan, flow_features={"refine_radius": [2, 1, 2]})
+    assert sorted(changed_stages(plan, new, tmp_path)) == sorted(
+        ["seed0/flow_regression", "seed0/flow_contrastive", "seed0/eval/flow/regression",
+         "seed0/eval/flow/contrastive", "seed0/eval/moving/all"])
+
+
+def test_a_pretraining_option_touches_everything_downstream_of_pretraining(plan, tmp_path):
+    changed = set(changed_stages(plan, _with_options(plan, pretrain={"coeff_match": 0.5}), tmp_path))
+    untouched = {"data/train", "data/test", "data/val", "seed0/egomotion", "seed0/eval/egomotion/moving_camera",
+                 "seed0/eval/retrieval/random", "seed0/detector_random_finetuned_L2",
+                 "seed0/detector_random_finetuned_Lall", "seed0/eval/detection/random_finetuned_L2",
+                 "seed0/eval/detection/random_finetuned_Lall"}
+    assert changed == set(stage_digests(plan, tmp_path)) - untouched
+
+
+def test_rules_and_evaluation_settings_touch_only_their_stages(plan, tmp_path):
+    assert sorted(changed_stages(plan, with_steps(plan, egomotion=3), tmp_path)) == [
+        "seed0/egomotion", "seed0/eval/egomotion/moving_camera", "seed0/eval/moving/all"]
+    assert changed_stages(plan, replace(plan, moving_iou=0.25), tmp_path) == ["seed0/eval/moving/all"]
+    assert sorted(changed_stages(plan, replace(plan, retrieval_cube=5), tmp_path)) == [
+        f"seed0/eval/retrieval/{arm}" for arm in ("contrastive", "random", "regression")]
+    # more test records: every evaluation, no training
+    changed = changed_stages(plan, replace(plan, test_episodes=plan.test_episodes + 1), tmp_path)
+    assert "data/test" in changed and all(n == "data/test" or "/eval/" in n for n in changed)
+    assert len(changed) == 1 + sum("/eval/" in n for n in stage_digests(plan, tmp_path))
+
+
+def test_forget_changed_deletes_only_the_touched_stages_that_exist(plan, tmp_path):
+    for name in ("seed0/flow_contrastive", "seed0/pretrain_contrastive", "seed0/eval/flow/contrastive"):
+        (tmp_path / name).mkdir(parents=True)
+        (tmp_path / name / "metrics.json").write_text("{}")
+    lines = []
+    removed = forget_changed(plan, _with_options(plan, flow_features={"refine_radius": [2, 1, 2]}), tmp_path,
+                             lines.append)
+    assert removed == ["seed0/flow_contrastive", "seed0/eval/flow/contrastive"]
+    assert not (tmp_path / "seed0/flow_contrastive").exists() and (tmp_path / "seed0/pretrain_contrastive").exists()
+    assert "2 finished or started stage(s) redone" in lines[-1]
