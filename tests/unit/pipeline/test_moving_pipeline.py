@@ -87,7 +87,8 @@ def test_routes_keyword_set_and_contract(bundle, one_car_record):
 def test_everything_moves_gives_boxes_in_the_grid(bundle, one_car_record):
     # occupancy threshold below every probability and no speed threshold: the random flow moves every
     # voxel, so there is at least one component and its box must stay within the grid
-    cfg = MovingObjectsConfig(min_speed=0.0, occupied_above=-1.0, occupancy="predicted", ground_margin=None)
+    cfg = MovingObjectsConfig(min_speed=0.0, min_object_speed=0.0, occupied_above=-1.0, occupancy="predicted",
+                              ground_margin=None)
     pair = _pair(one_car_record, with_ref=True)
     out = moving_objects(bundle, **pair, stabilize="poses", config=cfg)
     _check_contract(out, 1)
