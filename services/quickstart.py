@@ -237,7 +237,11 @@ def report_bridge_accounting(out: str) -> None:
             print(f"   bridge accounting for cam0: received {status.get('received')}, processed "
                   f"{status.get('processed')}, dropped {status.get('dropped')}, malformed {status.get('malformed')}, "
                   f"errors {status.get('processing_errors')}, scene_starts {status.get('scene_starts')}; "
-                  f"latency p50 {status.get('latency_ms', {}).get('p50')} ms", flush=True)
+                  f"latency p50 {_ms(status.get('latency_ms', {}).get('p50'))} ms", flush=True)
+
+
+def _ms(value) -> str:
+    return f"{value:.0f}" if isinstance(value, (int, float)) else str(value)
 
 
 def wait_until_bridge_idle(endpoint: str, *, bridge_id: str, camera: str, frames: int, timeout_s: float = 120) -> None:
