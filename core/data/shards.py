@@ -117,9 +117,13 @@ class _ShardWriter:
         self.filename = shard_filename(index)
         self.tmp_path = out_dir / (self.filename + _PARTIAL_SUFFIX)
         self._file = open(self.tmp_path, "wb")
-        self._hasher = _HashingWriter(self._file)
-        # USTAR with fixed owner/mtime: the same records give byte-identical shards (same sha256).
-        self._tar = tarfile.open(fileobj=self._hasher, mode="w", format=tarfile.USTAR_FORMAT)
+        try:
+            self._hasher = _HashingWriter(self._file)
+            # USTAR with fixed owner/mtime: the same records give byte-identical shards (same sha256).
+            self._tar = tarfile.open(fileobj=self._hasher, mode="w", format=tarfile.USTAR_FORMAT)
+        except BaseException:
+            self.abort()
+            raise
         self.keys: list[str] = []
         self.payload_bytes = 0
 
@@ -263,15 +267,19 @@ def write_dataset(out_dir: str | os.PathLike, records: Iterable[Mapping[str, np.
         "shards": shards,
     }
     # Old dataset files go first so a crash between here and the manifest leaves no stale manifest
-    # pointing at replaced shards.
-    for old in out.iterdir():
-        if _is_dataset_file(old.name) and not old.name.endswith(_PARTIAL_SUFFIX):
-            old.unlink()
-    for entry in shards:
-        os.replace(out / (entry["filename"] + _PARTIAL_SUFFIX), out / entry["filename"])
-    tmp_manifest = out / (MANIFEST_NAME + _PARTIAL_SUFFIX)
-    tmp_manifest.write_text(json.dumps(manifest, indent=1) + "\n")
-    os.replace(tmp_manifest, out / MANIFEST_NAME)
+    # pointing at replaced shards (and an interrupt no temporary file: the directory then holds no dataset).
+    try:
+        for old in out.iterdir():
+            if _is_dataset_file(old.name) and not old.name.endswith(_PARTIAL_SUFFIX):
+                old.unlink()
+        for entry in shards:
+            os.replace(out / (entry["filename"] + _PARTIAL_SUFFIX), out / entry["filename"])
+        tmp_manifest = out / (MANIFEST_NAME + _PARTIAL_SUFFIX)
+        tmp_manifest.write_text(json.dumps(manifest, indent=1) + "\n")
+        os.replace(tmp_manifest, out / MANIFEST_NAME)
+    except BaseException:
+        _remove_partials(out)
+        raise
     return manifest
 
 

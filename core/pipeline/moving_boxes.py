@@ -55,7 +55,9 @@ class MovingObjectsConfig:
     # and stabilisation (true poses: static 0.86/0.86/0.84 -> 0.91/0.89/0.86, moving 0.80/0.75/0.83 ->
     # 0.83/0.82/0.88; egomotion module: static 0.75/0.65/0.56 -> 0.84/0.78/0.73, moving 0.64/0.65/0.62 ->
     # 0.74/0.78/0.84); at 1.5 the static camera lost again. The boxes that match no mover move at 1.1-1.5
-    # m/s (median), those that match at 3.0-3.6; the synthetic world's vehicles drive at 2-8 m/s.
+    # m/s (median), those that match at 3.0-3.6; the synthetic world's vehicles drive at 2-8 m/s. Regression
+    # features gain too; flow over input volumes gains with the egomotion module but loses 0.03-0.09 with
+    # exact poses on the static camera (README "Which voxels move" has the whole table).
     min_object_speed: float = 1.0
     min_voxels: int = 3             # smaller moving components are dropped
     occupied_above: float = 0.5     # occupancy probability above which a voxel holds matter

@@ -4,8 +4,9 @@ Every stage has a digest of what determines its output — its own settings and 
 it reads (services.bench.stages) — and a digest is a pure function of the plan. So the stages a change
 touches are found by walking the old and the new plan without running anything (`StageRunner(dry=True)`)
 and comparing digests: a changed flow option touches the flow stages and the evaluations that read them,
-not the pretrainings or the detectors. Those stages' directories are deleted; the rerun then redoes them
-and skips the rest as usual.
+not the pretrainings or the detectors. Those stages' directories are deleted, and so are those of stages
+the new plan no longer has (a label budget dropped, say); the rerun then redoes the touched ones and skips
+the rest as usual.
 
 Code changes are not in the digests: after changing code, delete the stages it affects by hand.
 """
@@ -33,15 +34,22 @@ def stage_digests(config: BenchConfig, work: Path) -> dict[str, str]:
 
 
 def changed_stages(earlier: BenchConfig, current: BenchConfig, work: Path) -> list[str]:
-    """Stages of `current` (its seeds) whose digest differs under `earlier`, or that `earlier` lacks."""
-    old = stage_digests(replace(earlier, seeds=current.seeds), work)
-    new = stage_digests(current, work)
-    return [name for name, digest in new.items() if old.get(name) != digest]
+    """Stages whose digest differs between the plans, or that only `earlier` has, over every seed of either
+    plan and every seed with a directory under `work`: a seed left out of this run but rerun later with the
+    same plan must not keep the old plan's stages (plans are compared without their seeds)."""
+    seeds = tuple(sorted(set(earlier.seeds) | set(current.seeds) | _seeds_on_disk(Path(work))))
+    old = stage_digests(replace(earlier, seeds=seeds), work)
+    new = stage_digests(replace(current, seeds=seeds), work)
+    return [name for name, digest in new.items() if old.get(name) != digest] + [name for name in old if name not in new]
+
+
+def _seeds_on_disk(work: Path) -> set[int]:
+    return {int(d.name[len("seed"):]) for d in work.glob("seed*") if d.is_dir() and d.name[len("seed"):].isdigit()}
 
 
 def forget_changed(earlier: BenchConfig, current: BenchConfig, work: Path, log: Callable[[str], None]) -> list[str]:
-    """Delete the output of every stage the change from `earlier` to `current` touches; returns their names
-    (those that had output)."""
+    """Delete the output of every stage the change from `earlier` to `current` touches or drops; returns their
+    names (those that had output)."""
     removed = []
     for name in changed_stages(earlier, current, work):
         stage_dir = Path(work) / name

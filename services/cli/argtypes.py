@@ -10,6 +10,9 @@ import math
 # = core.pipeline.moving_boxes.DEFAULT_DT (a test keeps them equal); not imported, so that parsing the
 # command line does not load torch.
 DEFAULT_FRAME_DT = 0.2
+# m/s under which a component of moving voxels is no moving object (`--min-object-speed` of `stream bridge`):
+# = core.pipeline.moving_boxes.MovingObjectsConfig.min_object_speed (the same test keeps them equal).
+DEFAULT_MIN_OBJECT_SPEED = 1.0
 FRAME_DT_HELP = ("seconds between consecutive frames of a camera, used only for moving-object pairs whose frames "
                  "carry no timestamps (both 0): the pair then spans (sequence1 − sequence0) × S. Otherwise the "
                  "interval is the frames' timestamp difference (default %(default)s, the synthetic world's step)")

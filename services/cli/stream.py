@@ -13,8 +13,8 @@ import threading
 import time
 from pathlib import Path
 
-from services.cli.argtypes import (DEFAULT_FRAME_DT, FRAME_DT_HELP, non_negative_float, non_negative_int, positive_float,
-                                   positive_int)
+from services.cli.argtypes import (DEFAULT_FRAME_DT, DEFAULT_MIN_OBJECT_SPEED, FRAME_DT_HELP, non_negative_float,
+                                   non_negative_int, positive_float, positive_int)
 from services.streaming.session import add_zenoh_arguments, options_from_args
 
 
@@ -44,6 +44,9 @@ def register(subparsers) -> None:
                              "(default: visible boxes); "
                              "`n3dmap eval moving` estimates it without labels and prints it in its report")
     bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
+    bridge.add_argument("--min-object-speed", type=non_negative_float, default=DEFAULT_MIN_OBJECT_SPEED,
+                        metavar="M_S", help="m/s: a component of moving voxels whose mean velocity is slower is no "
+                                            "moving object (default %(default)s; README \"Which voxels move\")")
     bridge.add_argument("--level", action="store_true",
                         help="map (and box) each frame in its camera levelled to gravity (frame \"level\": the camera's "
                              "centre and heading, Y down) instead of the camera itself: upright boxes, a level "
@@ -159,7 +162,8 @@ def _run_bridge(args: argparse.Namespace) -> int:
 
         prior = None if args.size_prior is None else SizePrior.from_size(*args.size_prior)
         processor = RuntimeProcessor(runtime, min_score=args.min_score, frame_dt=args.frame_dt, size_prior=prior,
-                                     level=args.level, level_ahead=args.level_ahead, ground_y=args.ground_y)
+                                     level=args.level, level_ahead=args.level_ahead, ground_y=args.ground_y,
+                                     min_object_speed=args.min_object_speed)
     except ValueError as e:
         raise CliError(str(e)) from None
     warm_s = processor.warm_up()  # before "ready": the first frames do not pay the models' one-time costs

@@ -71,7 +71,7 @@ class MovingStream:
 
     def __init__(self, runtime, *, min_score: float, frame_dt: float, size_prior: SizePrior | None = None,
                  reuse: bool = True, level: bool = False, level_ahead: float = 0.0,
-                 ground_y: float | None = None) -> None:
+                 ground_y: float | None = None, min_object_speed: float | None = None) -> None:
         """min_score: boxes scored below it are dropped; frame_dt: seconds per sequence number for frames
         without timestamps; size_prior: amodal boxes of this object size (core.moving.amodal), or None for
         visible boxes; reuse: False encodes the previous frame again every step (for comparisons);
@@ -81,13 +81,15 @@ class MovingStream:
         map frame is the camera itself (frame "ref"). With `level`: level_ahead moves the map frame that many
         metres along the camera's heading, and ground_y (the world's ground plane Y, Y down) puts it the
         bundle preset's `ground_y` above the ground, as the training grids are placed
-        (core.geometry.poses.level_over_ground); by default it stays at the camera's centre."""
+        (core.geometry.poses.level_over_ground); by default it stays at the camera's centre.
+        min_object_speed: m/s under which a component is no moving object (None: MovingObjectsConfig's)."""
         if not frame_dt > 0:
             raise ValueError(f"frame_dt must be positive seconds, got {frame_dt}")
         self.runtime = runtime
         self.min_score = min_score
         self.frame_dt = float(frame_dt)
-        self.config = MovingObjectsConfig(size_prior=size_prior)
+        speed = {} if min_object_speed is None else {"min_object_speed": float(min_object_speed)}
+        self.config = MovingObjectsConfig(size_prior=size_prior, **speed)  # ValueError names a negative speed
         self.reuse = reuse
         self.level = bool(level)
         if not self.level and (level_ahead or ground_y is not None):

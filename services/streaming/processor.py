@@ -29,14 +29,15 @@ class RuntimeProcessor(MovingStream):
 
     def __init__(self, runtime: Runtime, *, min_score: float = 0.0, reuse: bool = True,
                  frame_dt: float = DEFAULT_DT, size_prior: SizePrior | None = None, level: bool = False,
-                 level_ahead: float = 0.0, ground_y: float | None = None) -> None:
+                 level_ahead: float = 0.0, ground_y: float | None = None,
+                 min_object_speed: float | None = None) -> None:
         """As MovingStream; refuses a bundle that cannot find moving objects."""
         if "moving_objects" not in runtime.routes:
             raise ValueError(f"bundle {runtime.version} cannot serve the stream bridge: it lacks the modules for "
                              f"moving_objects (loaded modules: {', '.join(runtime.modules)}); "
                              "train the flow module into the bundle first")
         super().__init__(runtime, min_score=min_score, frame_dt=frame_dt, size_prior=size_prior, reuse=reuse,
-                         level=level, level_ahead=level_ahead, ground_y=ground_y)
+                         level=level, level_ahead=level_ahead, ground_y=ground_y, min_object_speed=min_object_speed)
 
     def decode(self, payload: bytes) -> View:
         msg = types_pb2.Frame()

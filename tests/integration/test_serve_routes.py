@@ -25,16 +25,19 @@ ROUTES = {"map": "/v1/map", "egomotion": "/v1/egomotion", "flow": "/v1/flow", "d
 
 
 ATOL = 1e-4
-MOVERS_SEED = 1  # a synthetic scene whose moving cars the untrained full bundle finds (boxes over 0.05 s)
+MOVERS_SEED = 1  # a synthetic scene whose moving cars the untrained full bundle finds (boxes over STEP s)
+# Seconds between the frames below. The untrained bundle's flow is slow: over 0.05 s its movers went at
+# 0.71 m/s, under the 1.0 m/s object threshold (core.pipeline.moving_boxes), leaving no boxes to compare.
+STEP = 0.025
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("serve")
     bundle = make_bundle(tmp / "bundle")
-    # --frame-dt 0.05 as the frames' clock below: the untrained bundle's flow is slow, and 0.2 s steps left
+    # --frame-dt STEP as the frames' clock below: the untrained bundle's flow is slow, and 0.2 s steps left
     # it under the speed thresholds (no boxes to compare between the transports).
-    with ServerProcess(bundle, "--max-wait-ms", "20", "--frame-dt", "0.05", log_path=tmp / "server.log") as s:
+    with ServerProcess(bundle, "--max-wait-ms", "20", "--frame-dt", str(STEP), log_path=tmp / "server.log") as s:
         s.bundle = bundle
         yield s
 
@@ -69,12 +72,12 @@ def grpc_client(server):
 
 def movers(count: int = 3, *, stamps=None):
     """`count` consecutive single-view client.Frames of a synthetic scene with moving cars (camera cam0,
-    sequence i, timestamp stamps[i], default 100 + 0.05·i)."""
+    sequence i, timestamp stamps[i], default 100 + STEP·i)."""
     from services.inference.client import Frames
     from services.streaming.sources import synthetic_frames
 
     source = synthetic_frames(preset_name="tiny", seed=MOVERS_SEED, frames_per_episode=8)
-    stamps = [100.0 + 0.05 * i for i in range(count)] if stamps is None else stamps
+    stamps = [100.0 + STEP * i for i in range(count)] if stamps is None else stamps
     return [Frames(rgb=f["rgb"], depth=f["depth"], pix_T_cam=f["pix_T_cam"], world_T_cam=f["world_T_cam"],
                    camera_id="cam0", sequence=i, timestamp=stamps[i]) for i, f in zip(range(count), source)]
 
@@ -158,29 +161,29 @@ def test_every_route_of_a_full_bundle_answers_as_core_pipeline(server, rest, grp
 
 
 def test_velocities_follow_the_frames_clock(server, rest, grpc_client, core_bundle):
-    """The same pair stamped 0.05 s and 0.1 s apart answers what core.pipeline answers over 0.05 s and 0.1 s
+    """The same pair stamped STEP and 2·STEP s apart answers what core.pipeline answers over those intervals
     (the speed thresholds and the velocities scale with the interval); unstamped (both 0), it spans
-    (sequence1 − sequence0) × --frame-dt (0.05 s on this server)."""
+    (sequence1 − sequence0) × --frame-dt (STEP on this server)."""
     import torch
 
     from core.pipeline import moving_objects
 
-    f0, f1 = movers(2, stamps=[0.0, 0.05])
+    f0, f1 = movers(2, stamps=[0.0, STEP])
     pair = {**core_inputs(f0, "0"), **core_inputs(f1, "1")}
     answers = {}
-    for dt in (0.05, 0.1):
+    for dt in (STEP, 2 * STEP):
         f1.timestamp = dt
         with torch.no_grad():
             want = core_boxes(moving_objects(core_bundle, **pair, dt=dt), -1.0)
         for client in (rest, grpc_client):
             answers[dt] = client.moving_objects(f0, f1)
             assert_boxes(answers[dt], want)
-    assert len(answers[0.05]["boxes"]) > 0  # something to compare
-    assert answers[0.05]["boxes"].shape != answers[0.1]["boxes"].shape or not np.allclose(
-        answers[0.05]["velocities"], answers[0.1]["velocities"])
+    assert len(answers[STEP]["boxes"]) > 0  # something to compare
+    assert answers[STEP]["boxes"].shape != answers[2 * STEP]["boxes"].shape or not np.allclose(
+        answers[STEP]["velocities"], answers[2 * STEP]["velocities"])
     f0.timestamp, f1.timestamp, f0.sequence, f1.sequence = 0.0, 0.0, 3, 5
     for client in (rest, grpc_client):
-        assert_boxes(client.moving_objects(f0, f1), answers[0.1])
+        assert_boxes(client.moving_objects(f0, f1), answers[2 * STEP])
 
 
 @pytest.mark.parametrize("encoding,png", [("json", False), ("png", True)])
@@ -244,7 +247,7 @@ def test_stream_follows_the_bridge_rules_and_answers_as_core_pipeline(server, gr
     from core.pipeline import moving_objects
     from services.inference.client import ServiceCallError
 
-    frames = movers(3, stamps=[100.0, 100.05, 100.15])
+    frames = movers(3, stamps=[100.0, 100.0 + STEP, 100.0 + 3 * STEP])
     duplicate, older = copy.copy(frames[1]), copy.copy(frames[0])
     out = list(grpc_client.stream_moving_objects([frames[0], frames[1], duplicate, older, frames[2]]))
     assert [d["sequence"] for d in out] == [0, 1, 2] and len(out[0]["boxes"]) == 0

@@ -95,3 +95,16 @@ def test_forget_changed_deletes_only_the_touched_stages_that_exist(plan, tmp_pat
     assert removed == ["seed0/flow_contrastive", "seed0/eval/flow/contrastive"]
     assert not (tmp_path / "seed0/flow_contrastive").exists() and (tmp_path / "seed0/pretrain_contrastive").exists()
     assert "2 finished or started stage(s) redone" in lines[-1]
+
+
+def test_seeds_outside_this_run_and_stages_the_new_plan_drops_are_covered(plan, tmp_path):
+    # seed 1 ran under the old plan and is not in this run: its touched stages go too (a later run with the
+    # new plan and seeds 0, 1 would otherwise skip them and mix the plans)
+    (tmp_path / "seed1").mkdir()
+    new = _with_options(plan, flow_features={"refine_radius": [2, 1, 2]})
+    assert "seed1/flow_contrastive" in changed_stages(plan, new, tmp_path)
+    # a label budget dropped: its detectors and their evaluations are stages the new plan no longer has
+    fewer = replace(plan, label_budgets=(None,))
+    dropped = set(changed_stages(plan, fewer, tmp_path))
+    assert dropped == {f"seed{s}/{d}" for s in (0, 1) for d in _detectors(plan) if d.endswith("_L2")} | {
+        f"seed{s}/eval/detection/{d[len('detector_'):]}" for s in (0, 1) for d in _detectors(plan) if d.endswith("_L2")}

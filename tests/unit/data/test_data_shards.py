@@ -163,6 +163,25 @@ def test_interrupt_while_a_shard_is_being_opened_leaves_no_file(tmp_path, record
     assert len(opened) == 2 and list((tmp_path / "ds").iterdir()) == []
 
 
+def test_interrupt_while_finishing_leaves_no_temporary_file(tmp_path, records, monkeypatch):
+    """Ctrl-C between the shards' renames and the manifest's: no `.partial` file stays, and no manifest
+    (the directory holds no dataset)."""
+    import core.data.shards as shards
+
+    real_replace = shards.os.replace
+
+    def replace_then_interrupt(src, dst):
+        if str(dst).endswith(MANIFEST_NAME):
+            raise KeyboardInterrupt
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(shards.os, "replace", replace_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        _write(tmp_path / "ds", records)
+    names = [p.name for p in (tmp_path / "ds").iterdir()]
+    assert names and not [n for n in names if n.endswith(".partial") or n == MANIFEST_NAME], names
+
+
 # ----------------------------------------------------------------------------- corruption
 
 @pytest.fixture

@@ -19,6 +19,7 @@ import torch
 from core.bundle import Bundle, save_bundle
 from core.pipeline import encode_previous, estimate_flow, moving_objects, moving_step
 from core.pipeline.egomotion import estimate_egomotion
+from core.pipeline.moving_boxes import MovingObjectsConfig
 from core.presets import TINY
 from core.tasks.egomotion import EgomotionTask
 from core.tasks.flow import FlowTask
@@ -293,6 +294,11 @@ def test_the_interval_comes_from_the_timestamps(bundle_dir, frames):
         processor.process("c", state, late)
     with pytest.raises(ValueError, match="frame_dt"):
         RuntimeProcessor(runtime, frame_dt=0.0)
+    # the object-speed threshold reaches the post-processing; a negative one is refused by name
+    assert RuntimeProcessor(runtime, min_object_speed=0.3).config.min_object_speed == 0.3
+    assert RuntimeProcessor(runtime).config.min_object_speed == MovingObjectsConfig.min_object_speed
+    with pytest.raises(ValueError, match="min_object_speed"):
+        RuntimeProcessor(runtime, min_object_speed=-1.0)
 
 
 def test_a_bundle_without_egomotion_needs_the_frames_poses(bundle_dir, frames):
@@ -327,11 +333,13 @@ def test_cache_is_keyed_by_sequence(bundle_dir, frames):
     assert state.extra["sequence"] == 2 and state.extra["encoding"] is not stale
 
 
-def test_frame_dt_default_is_the_pipelines():
+def test_cli_defaults_are_the_pipelines():
+    # services/cli/argtypes.py keeps copies, so that parsing the command line does not load torch
     from core.pipeline.moving_boxes import DEFAULT_DT
-    from services.cli.argtypes import DEFAULT_FRAME_DT
+    from services.cli.argtypes import DEFAULT_FRAME_DT, DEFAULT_MIN_OBJECT_SPEED
 
     assert DEFAULT_FRAME_DT == DEFAULT_DT
+    assert DEFAULT_MIN_OBJECT_SPEED == MovingObjectsConfig.min_object_speed
 
 
 def test_the_map_is_made_only_when_a_step_reads_it(bundle_dir, frames):
