@@ -127,7 +127,7 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             views0, views1 = self._views(request)
             score = check_min_score(request.min_score, low=-1.0) if request.HasField("min_score") else -1.0
             item = moving_input(views0, views1, min_score=score, frame_dt=self.runtime.config.frame_dt,
-                                modules=self.runtime.modules)
+                                modules=self.runtime.modules, config=self.runtime.config.moving_objects)
             answer = await self.runtime.infer("moving_objects", item, timeout_s=_deadline(context))
             return inference_pb2.DetectionsResponse(info=wire.info_proto(answer), detections=wire.detections_proto(
                 answer.result, frame=answer.frame, bundle_version=answer.bundle_version, views=views1,
@@ -150,7 +150,9 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         status = "OK"
         try:
             self.runtime.require("moving_objects")
+            objects = self.runtime.config.moving_objects
             stream = MovingStream(self.runtime, min_score=-1.0, frame_dt=self.runtime.config.frame_dt,
+                                  size_prior=objects.size_prior, min_object_speed=objects.min_object_speed,
                                   **stream_options(context.invocation_metadata()))
             states: dict[str, CameraState] = {}
             async for frame in request_iterator:

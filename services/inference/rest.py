@@ -227,7 +227,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
                            min_score: Annotated[float, Query(ge=-1, le=1, description="binary bodies")] = -1.0):
         body, (v0, v1) = await pair_item(request, schemas.MovingObjectsRequestJSON)
         score = body.min_score if body is not None else check_min_score(min_score, low=-1.0)
-        item = moving_input(v0, v1, min_score=score, frame_dt=runtime.config.frame_dt, modules=runtime.modules)
+        item = moving_input(v0, v1, min_score=score, frame_dt=runtime.config.frame_dt, modules=runtime.modules,
+                            config=runtime.config.moving_objects)
         answer = await runtime.infer("moving_objects", item)
         return detections_json(answer, v1)  # boxes in ref = views0[0]'s camera; provenance of the newest frame
 

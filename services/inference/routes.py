@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from core.pipeline import detect, estimate_egomotion, estimate_flow, map_frames, moving_objects
-from core.pipeline.moving_boxes import DEFAULT_DT
+from core.pipeline.moving_boxes import DEFAULT_DT, MovingObjectsConfig
 from core.pipeline.stabilise import STABILISE
 from services.inference.errors import InvalidInput
 from services.inference.validation import Views, check_pair, pair_interval, require_poses
@@ -56,6 +56,9 @@ class MovingInput:
     views1: Views
     min_score: float = -1.0           # saliency scores lie in [−1, 1]: the default keeps every box
     dt: float = DEFAULT_DT            # seconds from views0 to views1 (validation.pair_interval)
+    # the post-processing (the runtime's, RuntimeConfig.moving_objects: the same for every request, so a
+    # batch shares it)
+    config: MovingObjectsConfig = MovingObjectsConfig()
 
 
 @dataclass(frozen=True)
@@ -137,10 +140,11 @@ def moving_interval(views0: Views, views1: Views, *, modules: Sequence[str], fra
 
 
 def moving_input(views0: Views, views1: Views, *, min_score: float, frame_dt: float,
-                 modules: Sequence[str]) -> MovingInput:
+                 modules: Sequence[str], config: MovingObjectsConfig | None = None) -> MovingInput:
     check_pair(views0, views1, "views1")
     return MovingInput(views0=views0, views1=views1, min_score=min_score,
-                       dt=moving_interval(views0, views1, modules=modules, frame_dt=frame_dt))
+                       dt=moving_interval(views0, views1, modules=modules, frame_dt=frame_dt),
+                       config=config or MovingObjectsConfig())
 
 
 # ------------------------------------------------------------------------------ converters
@@ -220,7 +224,7 @@ def _run_detect(bundle, inputs: list[DetectInput], device) -> list[DetectionsRes
 
 
 def _run_moving(bundle, inputs: list[MovingInput], device) -> list[DetectionsResult]:
-    out = moving_objects(bundle, **_pairs(inputs, device), dt=[i.dt for i in inputs])
+    out = moving_objects(bundle, **_pairs(inputs, device), dt=[i.dt for i in inputs], config=inputs[0].config)
     return detections_results(out, [i.min_score for i in inputs], label="moving")
 
 

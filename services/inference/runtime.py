@@ -16,7 +16,7 @@ import json
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
@@ -24,7 +24,7 @@ import torch
 
 from core.device import resolve_device
 from core.errors import BundleError
-from core.pipeline.moving_boxes import DEFAULT_DT
+from core.pipeline.moving_boxes import DEFAULT_DT, MovingObjectsConfig
 from services.inference.batching import BatchConfig, BatchStats, MicroBatcher
 from services.inference.errors import ModuleUnavailable, NotReady, RequestTimeout
 from services.inference.metrics import Metrics
@@ -46,6 +46,9 @@ class RuntimeConfig:
     timeout_s: float = 30.0              # per-request deadline (queue + model)
     # Seconds per sequence number for moving-object pairs whose frames carry no timestamps (both 0).
     frame_dt: float = DEFAULT_DT
+    # The moving-object post-processing of the moving_objects route and the gRPC stream (`serve --size-prior`,
+    # `--min-object-speed`); its `dt` is unused (each pair's interval comes from its frames or frame_dt).
+    moving_objects: MovingObjectsConfig = field(default_factory=MovingObjectsConfig)
 
     def __post_init__(self) -> None:
         if not self.frame_dt > 0:

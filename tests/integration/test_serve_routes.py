@@ -519,3 +519,32 @@ def test_schemathesis_finds_no_server_errors(server, tmp_path):
                           capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
     assert "passed" in proc.stdout
+
+
+def test_serve_moving_object_options_reach_every_moving_route(tmp_path, core_bundle, server):
+    """`serve --size-prior L W H --min-object-speed M`: the REST route, the unary and the streaming gRPC call
+    answer what core.pipeline answers with that post-processing (amodal boxes of that size, that object
+    threshold), not the defaults."""
+    import torch
+
+    from core.moving.amodal import SizePrior
+    from core.pipeline import moving_objects
+    from core.pipeline.moving_boxes import MovingObjectsConfig
+    from services.inference.client import GrpcClient, RestClient
+
+    config = MovingObjectsConfig(size_prior=SizePrior.from_size(4.5, 2.0, 1.5), min_object_speed=0.5)
+    f0, f1 = movers(2)
+    with torch.no_grad():
+        want = core_boxes(moving_objects(core_bundle, **core_inputs(f0, "0"), **core_inputs(f1, "1"),
+                                         dt=f1.timestamp - f0.timestamp, config=config), -1.0)
+        default = core_boxes(moving_objects(core_bundle, **core_inputs(f0, "0"), **core_inputs(f1, "1"),
+                                            dt=f1.timestamp - f0.timestamp), -1.0)
+    assert len(want["boxes"]) > 0  # something to compare, and the options change the answer
+    assert want["boxes"].shape != default["boxes"].shape or not np.allclose(want["boxes"], default["boxes"])
+    with ServerProcess(server.bundle, "--max-wait-ms", "20", "--frame-dt", str(STEP), "--size-prior", "4.5", "2.0",
+                       "1.5", "--min-object-speed", "0.5", log_path=tmp_path / "server.log") as s:
+        with RestClient(s.url) as rest, GrpcClient(s.target) as grpc_client:
+            assert_boxes(rest.moving_objects(f0, f1), want)
+            assert_boxes(grpc_client.moving_objects(f0, f1), want)
+            streamed = list(grpc_client.stream_moving_objects([f0, f1]))
+    assert_boxes(streamed[1], want)
