@@ -205,7 +205,7 @@ _PROFILES: dict[tuple[str, bool], dict] = {
                                            occupancy=_plateau(50, 100, 1000))),
     # 64 test records (32 static- and 32 moving-camera pairs): on 16 the verdicts rested on 8 pairs per camera
     # setting, and the small report's verdicts changed on 64 (egomotion's rotation 1.09-1.17 x ICP's on the 16
-    # records' 8 pairs, 1.6-1.75 x on the 64 records' 32). Only evaluations read them (~4x their time).
+    # records' 8 pairs, 1.49-1.73 x on the 64 records' 32). Only evaluations read them (~4x their time).
     ("small", False): dict(train_episodes=64, val_episodes=8, test_episodes=64, label_budgets=(2, 8, None),
                            rules=StageRules(pretrain=_plateau(100, 300, 3000), detector=_epochs(40, 200, 2000),
                                             flow=_plateau(100, 200, 2000), egomotion=_plateau(100, 200, 2000),
