@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import os
 
-from services.cli.argtypes import (DEFAULT_FRAME_DT, DEFAULT_MIN_OBJECT_SPEED, FRAME_DT_HELP, non_negative_float, port,
-                                   positive_float, positive_int)
+from services.cli.argtypes import DEFAULT_FRAME_DT, FRAME_DT_HELP, non_negative_float, port, positive_float, positive_int
+from services.cli.moving_options import add_moving_object_arguments, moving_objects_config
 
 
 def register(subparsers) -> None:
@@ -29,11 +29,7 @@ def register(subparsers) -> None:
     p.add_argument("--queue", type=positive_int, default=64, help="waiting requests before 429 (default 64)")
     p.add_argument("--timeout", type=positive_float, default=30.0, help="per-request deadline in seconds (default 30)")
     p.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
-    p.add_argument("--size-prior", type=positive_float, nargs=3, default=None, metavar=("L", "W", "H"),
-                   help="moving objects (REST, unary and streaming gRPC): amodal boxes of this object size in metres "
-                        "(length, width, height), as `stream bridge --size-prior` (default: visible boxes)")
-    p.add_argument("--min-object-speed", type=non_negative_float, default=DEFAULT_MIN_OBJECT_SPEED, metavar="M_S",
-                   help="moving objects: m/s under which a component is no moving object (default %(default)s)")
+    add_moving_object_arguments(p)  # the moving-objects route and both gRPC calls
     p.add_argument("--max-body-mb", type=positive_float, default=64.0, help="largest request body (default 64 MB)")
     p.add_argument("--drain", type=non_negative_float, default=10.0, help="seconds to drain in-flight requests on shutdown")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
@@ -49,12 +45,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--tls-cert and --tls-key go together")
     if args.http_port and args.http_port == args.grpc_port:
         raise CliError(f"--http-port and --grpc-port are both {args.http_port}; give two different ports")
-    from core.moving.amodal import SizePrior
-    from core.pipeline.moving_boxes import MovingObjectsConfig
-
     try:
-        objects = MovingObjectsConfig(min_object_speed=args.min_object_speed, size_prior=None
-                                      if args.size_prior is None else SizePrior.from_size(*args.size_prior))
+        objects = moving_objects_config(args)
     except ValueError as e:
         raise CliError(str(e)) from None
     runtime = RuntimeConfig(bundle_dir=args.bundle, device=args.device, num_threads=args.threads,

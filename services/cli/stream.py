@@ -13,8 +13,9 @@ import threading
 import time
 from pathlib import Path
 
-from services.cli.argtypes import (DEFAULT_FRAME_DT, DEFAULT_MIN_OBJECT_SPEED, FRAME_DT_HELP, non_negative_float,
-                                   non_negative_int, positive_float, positive_int)
+from services.cli.argtypes import (DEFAULT_FRAME_DT, FRAME_DT_HELP, non_negative_float, non_negative_int,
+                                   positive_float, positive_int)
+from services.cli.moving_options import add_moving_object_arguments, moving_objects_config
 from services.streaming.session import add_zenoh_arguments, options_from_args
 
 
@@ -38,15 +39,8 @@ def register(subparsers) -> None:
                              "camera, listener and zenoh need a core; on a loaded 2-core host two threads "
                              "spin against each other and run ~10× slower)")
     bridge.add_argument("--min-score", type=float, default=0.0, help="drop boxes scored below this")
-    bridge.add_argument("--size-prior", type=positive_float, nargs=3, default=None, metavar=("L", "W", "H"),
-                        help="amodal boxes of this object size in metres (length, width, height): oversized "
-                             "components are split or dropped, partial ones completed, footprints capped at 1.25 × it "
-                             "(default: visible boxes); "
-                             "`n3dmap eval moving` estimates it without labels and prints it in its report")
+    add_moving_object_arguments(bridge)
     bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
-    bridge.add_argument("--min-object-speed", type=non_negative_float, default=DEFAULT_MIN_OBJECT_SPEED,
-                        metavar="M_S", help="m/s: a component of moving voxels whose mean velocity is slower is no "
-                                            "moving object (default %(default)s; README \"Which voxels move\")")
     bridge.add_argument("--level", action="store_true",
                         help="map (and box) each frame in its camera levelled to gravity (frame \"level\": the camera's "
                              "centre and heading, Y down) instead of the camera itself: upright boxes, a level "
@@ -158,12 +152,9 @@ def _run_bridge(args: argparse.Namespace) -> int:
     runtime = Runtime(RuntimeConfig(bundle_dir=args.bundle, device=args.device,
                                     num_threads=args.threads or default_bridge_threads()))
     try:
-        from core.moving.amodal import SizePrior
-
-        prior = None if args.size_prior is None else SizePrior.from_size(*args.size_prior)
-        processor = RuntimeProcessor(runtime, min_score=args.min_score, frame_dt=args.frame_dt, size_prior=prior,
-                                     level=args.level, level_ahead=args.level_ahead, ground_y=args.ground_y,
-                                     min_object_speed=args.min_object_speed)
+        processor = RuntimeProcessor(runtime, min_score=args.min_score, frame_dt=args.frame_dt,
+                                     objects=moving_objects_config(args), level=args.level,
+                                     level_ahead=args.level_ahead, ground_y=args.ground_y)
     except ValueError as e:
         raise CliError(str(e)) from None
     warm_s = processor.warm_up()  # before "ready": the first frames do not pay the models' one-time costs

@@ -24,7 +24,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from core.moving.amodal import SizePrior
 from core.pipeline import encode_previous, moving_step
 from core.geometry.poses import level_over_ground, rig_cam_T_ref
 from core.pipeline.egomotion import egomotion_from_volumes
@@ -69,27 +68,25 @@ class MovingStream:
     """Runs the moving-object step of each camera's frames over the runtime's loaded bundle. Call `step`
     and `prepare` from one thread at a time (the bridge's worker, or the runtime's model thread)."""
 
-    def __init__(self, runtime, *, min_score: float, frame_dt: float, size_prior: SizePrior | None = None,
+    def __init__(self, runtime, *, min_score: float, frame_dt: float, objects: MovingObjectsConfig | None = None,
                  reuse: bool = True, level: bool = False, level_ahead: float = 0.0,
-                 ground_y: float | None = None, min_object_speed: float | None = None) -> None:
+                 ground_y: float | None = None) -> None:
         """min_score: boxes scored below it are dropped; frame_dt: seconds per sequence number for frames
-        without timestamps; size_prior: amodal boxes of this object size (core.moving.amodal), or None for
-        visible boxes; reuse: False encodes the previous frame again every step (for comparisons);
+        without timestamps; objects: the moving-object post-processing (its size prior gives amodal boxes,
+        core.moving.amodal; None: the defaults, visible boxes); reuse: False encodes the previous frame again every step (for comparisons);
         level: each frame's map frame is its camera levelled to gravity (core.geometry.poses.levelled: the
         frames' world_T_cam must be given, in a world whose Y points down), so boxes are upright and the
         ground is level; the Detections say frame "level" and carry its pose in world_T_frame. Otherwise the
         map frame is the camera itself (frame "ref"). With `level`: level_ahead moves the map frame that many
         metres along the camera's heading, and ground_y (the world's ground plane Y, Y down) puts it the
         bundle preset's `ground_y` above the ground, as the training grids are placed
-        (core.geometry.poses.level_over_ground); by default it stays at the camera's centre.
-        min_object_speed: m/s under which a component is no moving object (None: MovingObjectsConfig's)."""
+        (core.geometry.poses.level_over_ground); by default it stays at the camera's centre."""
         if not frame_dt > 0:
             raise ValueError(f"frame_dt must be positive seconds, got {frame_dt}")
         self.runtime = runtime
         self.min_score = min_score
         self.frame_dt = float(frame_dt)
-        speed = {} if min_object_speed is None else {"min_object_speed": float(min_object_speed)}
-        self.config = MovingObjectsConfig(size_prior=size_prior, **speed)  # ValueError names a negative speed
+        self.config = objects or MovingObjectsConfig()
         self.reuse = reuse
         self.level = bool(level)
         if not self.level and (level_ahead or ground_y is not None):

@@ -150,9 +150,8 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         status = "OK"
         try:
             self.runtime.require("moving_objects")
-            objects = self.runtime.config.moving_objects
             stream = MovingStream(self.runtime, min_score=-1.0, frame_dt=self.runtime.config.frame_dt,
-                                  size_prior=objects.size_prior, min_object_speed=objects.min_object_speed,
+                                  objects=self.runtime.config.moving_objects,
                                   **stream_options(context.invocation_metadata()))
             states: dict[str, CameraState] = {}
             async for frame in request_iterator:

@@ -140,11 +140,11 @@ def moving_interval(views0: Views, views1: Views, *, modules: Sequence[str], fra
 
 
 def moving_input(views0: Views, views1: Views, *, min_score: float, frame_dt: float,
-                 modules: Sequence[str], config: MovingObjectsConfig | None = None) -> MovingInput:
+                 modules: Sequence[str], config: MovingObjectsConfig) -> MovingInput:
     check_pair(views0, views1, "views1")
     return MovingInput(views0=views0, views1=views1, min_score=min_score,
                        dt=moving_interval(views0, views1, modules=modules, frame_dt=frame_dt),
-                       config=config or MovingObjectsConfig())
+                       config=config)
 
 
 # ------------------------------------------------------------------------------ converters

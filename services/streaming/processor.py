@@ -12,8 +12,7 @@ from __future__ import annotations
 
 from google.protobuf.message import DecodeError
 
-from core.moving.amodal import SizePrior
-from core.pipeline.moving_boxes import DEFAULT_DT
+from core.pipeline.moving_boxes import DEFAULT_DT, MovingObjectsConfig
 from n3dmap.v1 import types_pb2
 from services.inference.camera_state import CameraState
 from services.inference.camera_stream import MovingStream
@@ -28,16 +27,15 @@ class RuntimeProcessor(MovingStream):
     """Decode `Frame` payloads and run egomotion + moving objects on the runtime's bundle."""
 
     def __init__(self, runtime: Runtime, *, min_score: float = 0.0, reuse: bool = True,
-                 frame_dt: float = DEFAULT_DT, size_prior: SizePrior | None = None, level: bool = False,
-                 level_ahead: float = 0.0, ground_y: float | None = None,
-                 min_object_speed: float | None = None) -> None:
+                 frame_dt: float = DEFAULT_DT, objects: MovingObjectsConfig | None = None, level: bool = False,
+                 level_ahead: float = 0.0, ground_y: float | None = None) -> None:
         """As MovingStream; refuses a bundle that cannot find moving objects."""
         if "moving_objects" not in runtime.routes:
             raise ValueError(f"bundle {runtime.version} cannot serve the stream bridge: it lacks the modules for "
                              f"moving_objects (loaded modules: {', '.join(runtime.modules)}); "
                              "train the flow module into the bundle first")
-        super().__init__(runtime, min_score=min_score, frame_dt=frame_dt, size_prior=size_prior, reuse=reuse,
-                         level=level, level_ahead=level_ahead, ground_y=ground_y, min_object_speed=min_object_speed)
+        super().__init__(runtime, min_score=min_score, frame_dt=frame_dt, objects=objects, reuse=reuse,
+                         level=level, level_ahead=level_ahead, ground_y=ground_y)
 
     def decode(self, payload: bytes) -> View:
         msg = types_pb2.Frame()

@@ -295,10 +295,10 @@ def test_the_interval_comes_from_the_timestamps(bundle_dir, frames):
     with pytest.raises(ValueError, match="frame_dt"):
         RuntimeProcessor(runtime, frame_dt=0.0)
     # the object-speed threshold reaches the post-processing; a negative one is refused by name
-    assert RuntimeProcessor(runtime, min_object_speed=0.3).config.min_object_speed == 0.3
+    assert RuntimeProcessor(runtime, objects=MovingObjectsConfig(min_object_speed=0.3)).config.min_object_speed == 0.3
     assert RuntimeProcessor(runtime).config.min_object_speed == MovingObjectsConfig.min_object_speed
     with pytest.raises(ValueError, match="min_object_speed"):
-        RuntimeProcessor(runtime, min_object_speed=-1.0)
+        RuntimeProcessor(runtime, objects=MovingObjectsConfig(min_object_speed=-1.0))
 
 
 def test_a_bundle_without_egomotion_needs_the_frames_poses(bundle_dir, frames):
