@@ -2,6 +2,10 @@
 
 `StageRule` says it (plan.py gives one per stage and preset):
 
+Any rule may keep a moving average of the weights (`ema_decay` > 0): the stage's bundles are then the
+average's weights, and a plateau rule scores those (a constant learning rate leaves each step's weights
+noisy; measured in plan.py).
+
 - "fixed":   exactly `max_steps` steps (the quick profile, and `--<stage>-steps N` on the CLI);
 - "plateau": train in chunks of `eval_every` steps; after each chunk, score the task's own loss on
              held-out records (the benchmark's validation split, never the test split) with a fixed
@@ -54,6 +58,9 @@ class StageRule:
     patience: int = 0                # plateau
     min_improvement: float = 0.0     # plateau: relative drop of the held-out loss that counts
     epochs: int = 0                  # epochs
+    # > 0: the stage keeps a moving average of its weights with this decay (services/training/
+    # weight_average.py); its bundles, and the held-out loss a plateau rule scores, are the average's
+    ema_decay: float = 0.0
 
     def __post_init__(self) -> None:
         if self.kind not in RULE_KINDS:
@@ -64,19 +71,23 @@ class StageRule:
             raise StageRuleError("a plateau rule needs eval_every >= 1, patience >= 1 and min_improvement >= 0")
         if self.kind == "epochs" and self.epochs < 1:
             raise StageRuleError("an epochs rule needs epochs >= 1")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise StageRuleError(f"ema_decay must lie in [0, 1) (0: no weight average), got {self.ema_decay}")
 
     @staticmethod
-    def fixed(steps: int) -> "StageRule":
-        return StageRule(kind="fixed", max_steps=steps, min_steps=steps)
+    def fixed(steps: int, *, ema_decay: float = 0.0) -> "StageRule":
+        return StageRule(kind="fixed", max_steps=steps, min_steps=steps, ema_decay=ema_decay)
 
     def describe(self) -> str:
+        average = f"; weights: moving average, decay {self.ema_decay:g}" if self.ema_decay else ""
         if self.kind == "fixed":
-            return f"fixed {self.max_steps} steps"
+            return f"fixed {self.max_steps} steps{average}"
         if self.kind == "epochs":
-            return f"{self.epochs} epochs over its records, within [{self.min_steps}, {self.max_steps}] steps"
+            return (f"{self.epochs} epochs over its records, within [{self.min_steps}, {self.max_steps}] "
+                    f"steps{average}")
         return (f"held-out loss every {self.eval_every} steps; stop after {self.patience} evaluations without a "
                 f"{self.min_improvement:.0%} drop below the best (best weights kept), within "
-                f"[{self.min_steps}, {self.max_steps}] steps")
+                f"[{self.min_steps}, {self.max_steps}] steps{average}")
 
     def epoch_steps(self, records: int, batch_size: int) -> int:
         """Steps of an "epochs" rule for `records` training records at `batch_size` per step."""
@@ -84,7 +95,12 @@ class StageRule:
         return min(self.max_steps, max(self.min_steps, self.epochs * per_epoch))
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        if not d["ema_decay"]:
+            # left out when off, as plans and stage digests written before the field have it: those stages
+            # stay unchanged for `bench paper --rerun-changed`
+            del d["ema_decay"]
+        return d
 
 
 @dataclass(frozen=True)
@@ -164,7 +180,7 @@ def heldout_task_loss(job, records: list[dict], *, checkpoint_dir: Path, batch_s
 
     device = resolve_device(job.device)
     task = CORE_TASKS.build(job, device)
-    load_checkpoint(checkpoint_dir, task=task)
+    load_checkpoint(checkpoint_dir, task=task, averaged_weights=True)  # the weights the export would hold
     task.eval()
     rng_state = torch.random.get_rng_state()
     torch.manual_seed(CRITERION_SEED)

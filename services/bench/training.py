@@ -40,6 +40,7 @@ def train_stage(config: BenchConfig, *, task: str, data_dir: Path, run_dir: Path
             steps=steps, batch_size=batch_size or config.batch_size, checkpoint_every=every,
             log_every=max(1, min(every, steps) // 2), max_failures=0 if config.workers == 0 else 1,
             seed=seed, init_bundle=str(init_bundle) if init_bundle else None, freeze=freeze,
+            ema_decay=rule.ema_decay,
         ).resolved()
 
     def train_to(steps: int) -> Path:

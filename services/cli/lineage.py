@@ -20,7 +20,7 @@ from pathlib import Path
 
 # Keys run_provenance writes besides the task's own options.
 RUN_KEYS = frozenset({"task", "data_manifest", "data_seed", "data_split", "steps", "workers",
-                      "batch_size_per_worker", "lr", "seed", "precision", "init_bundle", "frozen",
+                      "batch_size_per_worker", "lr", "seed", "precision", "ema_decay", "init_bundle", "frozen",
                       "git_commit", "run_dir", "run_id", "parents"})
 GIT_CHARS = 10
 
@@ -41,7 +41,7 @@ def task_label(prov: dict) -> str:
 
 
 def run_details(prov: dict, path: str | None = None) -> str:
-    """Steps, seed, precision (unless fp32) and frozen modules | data | run dir (or bundle path) | git
+    """Steps, seed, precision (unless fp32), weight average (if kept) and frozen modules | data | run dir (or bundle path) | git
     commit, where recorded."""
     training = []
     if prov.get("steps") is not None:
@@ -50,6 +50,8 @@ def run_details(prov: dict, path: str | None = None) -> str:
         training.append(f"seed {prov['seed']}")
     if prov.get("precision") not in (None, "fp32"):
         training.append(str(prov["precision"]))
+    if prov.get("ema_decay"):
+        training.append(f"weight average {_value(prov['ema_decay'])}")
     if prov.get("frozen"):
         training.append("frozen " + ", ".join(map(str, prov["frozen"])))
     parts = [", ".join(training)] if training else []

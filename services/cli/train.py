@@ -50,6 +50,9 @@ def add_common_train_args(parser: argparse.ArgumentParser) -> None:
     opt.add_argument("--batch-size", type=int, default=None, help="records per worker per step (default: preset)")
     opt.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: preset)")
     opt.add_argument("--seed", type=int, default=0, help="seed for weights and data order")
+    opt.add_argument("--ema-decay", type=float, default=0.0, metavar="D",
+                     help="keep an exponential moving average of the weights with this decay (e.g. 0.995) and "
+                          "export it instead of the last step's weights; 0 (default): off")
     opt.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
                      help="checkpoint every N steps and at the end (default: preset)")
     opt.add_argument("--log-every", type=int, default=10, metavar="N",
@@ -105,7 +108,7 @@ def config_from_args(task_name: str, args: argparse.Namespace, task_options: dic
         task_options=task_options, workers=args.workers, cpus_per_worker=args.cpus_per_worker,
         gpus_per_worker=args.gpus_per_worker, device=args.device, precision=args.precision, steps=args.steps,
         batch_size=args.batch_size, lr=args.lr, checkpoint_every=args.checkpoint_every,
-        log_every=args.log_every, max_failures=args.max_failures, seed=args.seed,
+        log_every=args.log_every, max_failures=args.max_failures, seed=args.seed, ema_decay=args.ema_decay,
         init_bundle=args.init, freeze=("mapper",) if args.freeze_features else (),
         object_store_mb=args.object_store_mb, attach=args.attach,
     )

@@ -3,6 +3,7 @@
 Layout of a checkpoint directory:
 
     task.safetensors   the task's state_dict (every parameter and buffer)
+    average.safetensors  the moving average of that state_dict (runs with --ema-decay > 0 only)
     optimizer.pt       the optimizer's state_dict, read back with torch.load(weights_only=True)
     state.json         {"step": int, "config": TrainJobConfig.to_dict(), "metrics": {...}}
 
@@ -23,11 +24,16 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from core.errors import N3dmapError
+from services.training.weight_average import WeightAverage
 
 TASK_FILE = "task.safetensors"
+AVERAGE_FILE = "average.safetensors"
 OPTIMIZER_FILE = "optimizer.pt"
 STATE_FILE = "state.json"
 CHECKPOINT_PREFIX = "checkpoint_"
+# Identity fields (TrainJobConfig.identity) that checkpoints written before the field existed lack: the
+# value those runs had.
+IDENTITY_DEFAULTS = {"ema_decay": 0.0}
 
 
 class CheckpointError(N3dmapError):
@@ -48,13 +54,14 @@ def checkpoint_dir_name(step: int) -> str:
 
 
 def save_checkpoint(directory: str | Path, *, task: torch.nn.Module, optimizer: torch.optim.Optimizer,
-                    step: int, config: dict, metrics: dict) -> Path:
-    """Write the task, optimizer, step and config into `directory` (created if missing)."""
+                    step: int, config: dict, metrics: dict, average: WeightAverage | None = None) -> Path:
+    """Write the task, optimizer, step and config (and the weight average, if any) into `directory`
+    (created if missing)."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    # clone(): safetensors refuses tensors that share storage; contiguous CPU copies are always safe.
-    tensors = {k: v.detach().to("cpu").contiguous().clone() for k, v in task.state_dict().items()}
-    save_file(tensors, str(directory / TASK_FILE))
+    save_file(_cpu_tensors(task.state_dict()), str(directory / TASK_FILE))
+    if average is not None:
+        save_file(_cpu_tensors(average.state_dict()), str(directory / AVERAGE_FILE))
     torch.save(optimizer.state_dict(), directory / OPTIMIZER_FILE)
     state = {"step": int(step), "config": config, "metrics": _json_safe(metrics)}
     (directory / STATE_FILE).write_text(json.dumps(state, indent=1, sort_keys=True))
@@ -75,21 +82,30 @@ def read_checkpoint_state(directory: str | Path) -> CheckpointState:
 
 
 def load_checkpoint(directory: str | Path, *, task: torch.nn.Module,
-                    optimizer: torch.optim.Optimizer | None = None) -> CheckpointState:
-    """Load a checkpoint into `task` (and `optimizer` if given); tensors go to the task's device."""
+                    optimizer: torch.optim.Optimizer | None = None, average: WeightAverage | None = None,
+                    averaged_weights: bool = False) -> CheckpointState:
+    """Load a checkpoint into `task` (and `optimizer`, `average` if given); tensors go to the task's device.
+
+    averaged_weights: load the checkpoint's weight average into `task` instead of its last step's
+    weights, where it has one (the weights a run exports); a checkpoint without one loads as usual.
+    """
     directory = Path(directory)
     state = read_checkpoint_state(directory)
-    try:
-        tensors = load_file(str(directory / TASK_FILE))
-    except FileNotFoundError:
-        raise CheckpointError(f"checkpoint {directory}: missing {TASK_FILE}") from None
-    except Exception as e:  # safetensors raises its own error types for truncated/corrupt files
-        raise CheckpointError(f"checkpoint {directory}: cannot read {TASK_FILE} ({e})") from None
+    use_average = averaged_weights and (directory / AVERAGE_FILE).is_file()
+    tensors = _read_tensors(directory, AVERAGE_FILE if use_average else TASK_FILE)
     try:
         task.load_state_dict(tensors, strict=True)
     except RuntimeError as e:
         first_line = str(e).strip().splitlines()[0]
         raise CheckpointError(f"checkpoint {directory} does not fit this task: {first_line}") from None
+    if average is not None:
+        if not (directory / AVERAGE_FILE).is_file():
+            raise CheckpointError(f"checkpoint {directory}: missing {AVERAGE_FILE} (the run keeps a weight "
+                                  "average, the checkpoint has none)")
+        try:
+            average.load_state_dict(_read_tensors(directory, AVERAGE_FILE))
+        except KeyError as e:
+            raise CheckpointError(f"checkpoint {directory}: {AVERAGE_FILE}: {e.args[0]}") from None
     if optimizer is not None:
         device = _module_device(task)
         try:
@@ -102,7 +118,7 @@ def load_checkpoint(directory: str | Path, *, task: torch.nn.Module,
 
 def check_same_run(saved_config: dict, identity: dict, where: str | Path) -> None:
     """Refuse to resume a checkpoint written by a different task / objective / preset."""
-    saved = {k: saved_config.get(k) for k in identity}
+    saved = {k: saved_config.get(k, IDENTITY_DEFAULTS.get(k)) for k in identity}
     if saved != identity:
         diffs = ", ".join(f"{k}: checkpoint {saved[k]!r} vs now {identity[k]!r}"
                           for k in identity if saved[k] != identity[k])
@@ -156,6 +172,20 @@ def newest_complete_checkpoint(root: str | Path) -> Path | None:
             continue
         return candidate
     return None
+
+
+def _cpu_tensors(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    # clone(): safetensors refuses tensors that share storage; contiguous CPU copies are always safe.
+    return {k: v.detach().to("cpu").contiguous().clone() for k, v in state.items()}
+
+
+def _read_tensors(directory: Path, name: str) -> dict[str, torch.Tensor]:
+    try:
+        return load_file(str(directory / name))
+    except FileNotFoundError:
+        raise CheckpointError(f"checkpoint {directory}: missing {name}") from None
+    except Exception as e:  # safetensors raises its own error types for truncated/corrupt files
+        raise CheckpointError(f"checkpoint {directory}: cannot read {name} ({e})") from None
 
 
 def _module_device(module: torch.nn.Module) -> torch.device:

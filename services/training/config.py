@@ -52,6 +52,9 @@ class TrainJobConfig:
     init_bundle: str | None = None        # warm start: load this bundle's modules before step 1
     freeze: tuple[str, ...] = ()          # exported module names kept fixed (e.g. ("mapper",))
     grad_clip: float = 10.0               # max global grad norm; 0 disables clipping
+    # > 0: keep an exponential moving average of the weights with this decay (weight_average.py) and
+    # export it, and score it in the benchmark's held-out stopping rule, instead of the last step's weights
+    ema_decay: float = 0.0
     # "bf16": the task's forward (loss included) under torch.autocast(device type, bfloat16), on CPU and
     # CUDA alike: convolutions and matmuls run in bf16, the ops autocast lists as float32 stay float32,
     # and the weights, gradients, Adam state and geometry (core/precision.py) stay float32. "fp32": no
@@ -82,6 +85,8 @@ class TrainJobConfig:
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise TrainConfigError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+        if not 0.0 <= self.ema_decay < 1.0:
+            raise TrainConfigError(f"--ema-decay must lie in [0, 1) (0: off), got {self.ema_decay}")
         if self.lr is not None and not self.lr > 0:
             raise TrainConfigError(f"--lr must be > 0, got {self.lr}")
         if self.object_store_mb < 1:
@@ -145,7 +150,8 @@ class TrainJobConfig:
 
     def identity(self) -> dict:
         """The fields a resumed run must share with the run that wrote the checkpoint."""
-        return {"task": self.task, "task_options": self.task_options, "preset": self.preset}
+        return {"task": self.task, "task_options": self.task_options, "preset": self.preset,
+                "ema_decay": self.ema_decay}
 
 
 # Tasks that build a mapper (their configs take `encoder_full_res`, which must match the mapper they load).

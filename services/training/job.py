@@ -9,7 +9,8 @@
   workers, DDP, `FailureConfig(max_failures)`, and checkpoints under RUN_DIR/ray_train/. The same
   RunConfig(name, storage_path) on a rerun makes Ray hand the latest checkpoint back: that is resume.
 
-A finished run exports RUN_DIR/bundle/ (core.bundle.save_bundle) from its final checkpoint.
+A finished run exports RUN_DIR/bundle/ (core.bundle.save_bundle) from its final checkpoint: the
+weight average's weights where the run keeps one (--ema-decay), else the last step's.
 """
 
 from __future__ import annotations
@@ -239,7 +240,7 @@ def export_bundle(config: TrainJobConfig, checkpoint_dir: str | Path, *, outcome
 
     device = torch.device("cpu")
     task = spec.build(config, device)
-    state = load_checkpoint(checkpoint_dir, task=task)
+    state = load_checkpoint(checkpoint_dir, task=task, averaged_weights=True)  # the average, if the run kept one
     modules = dict(spec.exported(task))
     parents = []
     if config.init_bundle:
@@ -273,6 +274,7 @@ def run_provenance(config: TrainJobConfig, *, manifest: dict, steps: int, parent
         "lr": config.lr,
         "seed": config.seed,
         "precision": config.precision,
+        "ema_decay": config.ema_decay,
         "init_bundle": config.init_bundle,
         "frozen": list(config.freeze),
         "git_commit": git_commit(),

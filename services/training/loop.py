@@ -5,8 +5,10 @@ Train worker; the `session` (services/training/sessions.py) hides where batches 
 checkpoints go, and how values are averaged over workers.
 
 Guarantees:
-- resume: the session's latest checkpoint (if any) restores task, optimizer and step; otherwise an
-  `--init` bundle's modules are loaded; the loop then runs until `config.steps`.
+- resume: the session's latest checkpoint (if any) restores task, optimizer, step and weight average;
+  otherwise an `--init` bundle's modules are loaded; the loop then runs until `config.steps`.
+- `config.ema_decay > 0`: a moving average of the weights (weight_average.py) follows every optimizer
+  step and goes into each checkpoint; the export and the benchmark's held-out criterion read it.
 - every `checkpoint_every` steps and at the last step every rank calls `session.report` (a Ray
   collective) and rank 0 attaches a checkpoint.
 - a non-finite loss or gradient norm stops every rank before the optimizer step and before any
@@ -31,6 +33,7 @@ from services.training.checkpoints import (
 )
 from services.training.config import TrainJobConfig
 from services.training.progress import ProgressLogger
+from services.training.weight_average import WeightAverage
 
 
 class TrainingError(N3dmapError):
@@ -187,13 +190,16 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
     optimizer = torch.optim.Adam(trainable, lr=config.lr)
 
     start_step = 0
+    average = None
     with session.latest_checkpoint() as ckpt_dir:
+        if ckpt_dir is None and config.init_bundle:
+            load_init_bundle(exported, config.init_bundle, preset_name=config.preset, device=device)
+        if config.ema_decay:
+            average = WeightAverage(task, decay=config.ema_decay)  # starts at the initial (or --init) weights
         if ckpt_dir is not None:
             state = read_checkpoint_state(ckpt_dir)
             check_same_run(state.config, config.identity(), ckpt_dir)
-            start_step = load_checkpoint(ckpt_dir, task=task, optimizer=optimizer).step
-        elif config.init_bundle:
-            load_init_bundle(exported, config.init_bundle, preset_name=config.preset, device=device)
+            start_step = load_checkpoint(ckpt_dir, task=task, optimizer=optimizer, average=average).step
 
     model = session.prepare_model(task)
     logger = None
@@ -241,6 +247,8 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
                                 f"{step + 1} (loss={values['loss']:.4g})", sums, names)
             optimizer.step()
             step += 1
+            if average is not None:
+                average.update(task, step=step)
             last = values
             sums = reduced.cpu() if sums is None else sums + reduced.cpu()
 
@@ -249,7 +257,7 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
                 logger.log(step, values)
             _maybe_inject_fault(config, session, step)
             if step % config.checkpoint_every == 0 or step == config.steps:
-                _report_checkpoint(config, session, task, optimizer, step, values)
+                _report_checkpoint(config, session, task, optimizer, step, values, average)
                 saved_step = step
             if step >= config.steps:
                 break
@@ -273,12 +281,12 @@ def _stopped(step, start_step, saved_step, values, message, sums, names) -> Loop
                        message=message + last_good, last_metrics=values, mean_metrics=mean)
 
 
-def _report_checkpoint(config, session, task, optimizer, step, values) -> None:
+def _report_checkpoint(config, session, task, optimizer, step, values, average) -> None:
     staged = None
     if session.rank == 0:
         staged = session.staging_dir(step)
         save_checkpoint(staged, task=task, optimizer=optimizer, step=step, config=config.to_dict(),
-                        metrics=values)
+                        metrics=values, average=average)
     try:
         session.report({"step": step, **values}, step, staged)
     finally:

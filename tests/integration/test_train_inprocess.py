@@ -118,3 +118,23 @@ def test_bf16_training_tracks_the_fp32_loss_curve(tiny_train_data, tmp_path, cap
     assert sum(bf16[-3:]) < sum(bf16[:3])                  # and it trains
     config = json.loads((tmp_path / "bf16" / "bundle" / "bundle.json").read_text())
     assert config["provenance"]["steps"] == 8 and config["provenance"]["precision"] == "bf16"
+
+
+def test_ema_decay_exports_the_weight_average(tiny_train_data, tmp_path, capsys):
+    from safetensors.torch import load_file
+
+    from core.bundle import load_bundle
+    from services.training.checkpoints import AVERAGE_FILE, TASK_FILE, LocalCheckpointStore
+
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    assert _train(tiny_train_data, run, "--objective", "regression", "--steps", "3", "--batch-size", "2",
+                  "--lr", "3e-3", "--ema-decay", "0.9") == 0
+    checkpoint = LocalCheckpointStore(run / "checkpoints", keep=1).latest()
+    average, last = load_file(str(checkpoint / AVERAGE_FILE)), load_file(str(checkpoint / TASK_FILE))
+    mapper = load_bundle(run / "bundle").modules["mapper"].state_dict()
+    name = next(k for k, v in mapper.items() if v.is_floating_point() and v.numel() > 1)
+    torch.testing.assert_close(mapper[name], average[f"mapper.{name}"])
+    assert not torch.equal(average[f"mapper.{name}"], last[f"mapper.{name}"])
+    assert main(["bundle", "info", str(run / "bundle")]) == 0
+    assert "weight average 0.9" in capsys.readouterr().out

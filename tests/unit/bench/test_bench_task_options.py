@@ -91,7 +91,8 @@ def test_every_stage_with_a_rule_has_a_steps_flag(tmp_path, monkeypatch):
     seen = {}
     monkeypatch.setattr(paper, "run_paper_bench", lambda config, out, **kw: seen.update(config=config) or {"claims": []})
     assert main(["bench", "paper", "--seeds", "1", "--out", str(tmp_path / "r"), "--occupancy-steps", "7"]) == 0
-    assert seen["config"].rules.occupancy == StageRule.fixed(7)
+    # the length is fixed; the stage's weight average stays
+    assert seen["config"].rules.occupancy == StageRule.fixed(7, ema_decay=0.995)
     assert seen["config"].rules.flow == plan_for("small").rules.flow
 
 

@@ -30,6 +30,7 @@ def test_data_dir_without_manifest_is_one_line_exit_2(tmp_path, capsys):
     ("--workers", "-1", "--workers must be >= 0"),
     ("--steps", "0", "--steps must be >= 1"),
     ("--preset", "huge", "unknown preset 'huge'"),
+    ("--ema-decay", "1.0", "--ema-decay must lie in [0, 1) (0: off), got 1.0"),
 ])
 def test_bad_options_are_one_line_exit_2(tmp_path, capsys, flag, value, message):
     data = tmp_path / "data"
