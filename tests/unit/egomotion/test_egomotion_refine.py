@@ -10,7 +10,7 @@ from core.geometry.resample import sample_volume
 from core.geometry.splat import splat_points
 from core.geometry.voxelize import voxelize
 from core.models.egomotion import EgomotionNet
-from core.models.egomotion_refine import (FeatureMetricRefiner, alignment_jacobian, gauss_newton_refine,
+from core.models.egomotion_refine import (DEFAULT_INFERENCE_LEVELS, FeatureMetricRefiner, alignment_jacobian, gauss_newton_refine,
                                           gaussian_blur3d, interior_mask, spatial_gradient)
 from core.models.registry import build_module
 
@@ -186,6 +186,38 @@ def test_refiner_starts_as_geometric_alignment_and_learns_through_the_solve():
         assert p.grad is not None and float(p.grad.abs().sum()) > 0
     with pytest.raises(ValueError):
         FeatureMetricRefiner(feature_dim=3, levels=((1.0, 0.0, 0),))
+
+
+def test_refiner_runs_its_inference_levels_in_eval_mode_and_its_training_levels_in_train_mode():
+    field = _blobs(9, channels=1)
+    gt = _pose([0.0, 0.015, 0.0], [0.12, 0.0, 0.1])
+    ref_in = torch.cat([_volume(field, GRID), torch.zeros(1, 3, *GRID.shape_zyx, dtype=D)], 1)
+    query_in = torch.cat([_volume(field, GRID, gt), torch.zeros(1, 3, *GRID.shape_zyx, dtype=D)], 1)
+    feats = torch.randn(2, 3, *GRID.shape_zyx, dtype=D, generator=torch.Generator().manual_seed(3))
+    start = torch.eye(4, dtype=D)[None]
+    train_levels, eval_levels = ((1.0, 0.1, 1), (0.7, 0.0, 1)), ((1.0, 0.1, 1), (0.7, 0.0, 4))
+    refiner = FeatureMetricRefiner(feature_dim=3, levels=train_levels, inference_levels=eval_levels).double()
+
+    def plain(levels):
+        E = start
+        for sigma, robust, n in levels:
+            E, _ = gauss_newton_refine(gaussian_blur3d(ref_in[:, :1], sigma), gaussian_blur3d(query_in[:, :1], sigma),
+                                       E, GRID, iterations=n, robust_scale=robust, max_step=refiner.max_step)
+        return E
+
+    E_train, steps_train = refiner.train()(ref_in, query_in, feats[:1], feats[1:], start, GRID)
+    E_eval, steps_eval = refiner.eval()(ref_in, query_in, feats[:1], feats[1:], start, GRID)
+    assert (len(steps_train), len(steps_eval)) == (2, 5)
+    torch.testing.assert_close(E_train, plain(train_levels))
+    torch.testing.assert_close(E_eval, plain(eval_levels))
+    assert not torch.allclose(E_eval, E_train)
+    rebuilt = FeatureMetricRefiner(feature_dim=3, **refiner.config())
+    assert rebuilt.inference_levels == eval_levels and rebuilt.levels == train_levels
+    old = refiner.config()
+    del old["inference_levels"]  # a bundle saved before the option: the default schedule at inference
+    assert FeatureMetricRefiner(feature_dim=3, **old).inference_levels == DEFAULT_INFERENCE_LEVELS
+    with pytest.raises(ValueError, match="inference_levels need at least one iteration"):
+        FeatureMetricRefiner(feature_dim=3, inference_levels=())
 
 
 def test_module_with_refinement_rebuilds_and_old_configs_load_without_it():
