@@ -233,7 +233,9 @@ _PROFILES: dict[tuple[str, bool], dict] = {
 }
 _QUICK = dict(train_episodes=4, val_episodes=2, test_episodes=2, label_budgets=(2, None),
               rules=StageRules(pretrain=StageRule.fixed(2), detector=StageRule.fixed(2), flow=StageRule.fixed(2),
-                               egomotion=StageRule.fixed(2), occupancy=StageRule.fixed(2)), retrieval_per_example=4,
+                               # the weight average as in the full plans, so the quick profile runs its path
+                               egomotion=StageRule.fixed(2, ema_decay=EMA_DECAY),
+                               occupancy=StageRule.fixed(2, ema_decay=EMA_DECAY)), retrieval_per_example=4,
               detector_variants=(("random", "finetuned"), ("regression", "frozen"), ("contrastive", "frozen"),
                                  ("contrastive", "finetuned")))
 

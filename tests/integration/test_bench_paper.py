@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from services.bench.report import METRIC_KEYS
 
@@ -176,3 +177,22 @@ def test_changed_plan_is_refused_unless_rerun_changed_redoes_only_what_it_touche
     assert bundle["modules"]["flow"]["config"]["refine_radius"] == [1, 1, 1]
     assert json.loads((copy / "work" / "plan.json").read_text())["task_options"] == options
     assert json.loads((copy / "metrics.json").read_text())["metrics"]["config"]["task_options"] == options
+
+
+def test_occupancy_and_egomotion_stages_export_their_weight_average(bench_run):
+    from safetensors.torch import load_file
+
+    from core.bundle import load_bundle
+    from services.training.checkpoints import AVERAGE_FILE
+
+    out, _ = bench_run
+    for stage, module in (("occupancy_contrastive", "occupancy"), ("egomotion", "egomotion")):
+        run = out / "work" / "seed0" / stage
+        bundle = load_bundle(run / "selected")
+        assert bundle.meta["provenance"]["ema_decay"] == 0.995
+        checkpoint = sorted((run / "checkpoints").glob("checkpoint_*"))[-1]
+        average = load_file(str(checkpoint / AVERAGE_FILE))
+        name, value = next((k, v) for k, v in bundle.modules[module].state_dict().items() if v.is_floating_point())
+        torch.testing.assert_close(value, average[f"{module}.{name}"])
+    # the other stages keep none
+    assert load_bundle(out / "work" / "seed0" / "pretrain_contrastive" / "selected").meta["provenance"]["ema_decay"] == 0.0

@@ -72,6 +72,20 @@ def test_rules_reject_inconsistent_settings():
             StageRule(**bad)
 
 
+def test_a_rule_without_a_weight_average_keeps_the_dict_of_plans_written_before_the_field():
+    # a plan.json rule of an earlier n3dmap (no ema_decay): it reads back and writes the same dict, so the
+    # stage's digest is unchanged and `--rerun-changed` leaves the stage alone
+    earlier = {"kind": "plateau", "max_steps": 2000, "min_steps": 200, "eval_every": 100, "patience": 3,
+               "min_improvement": 0.01, "epochs": 0}
+    assert StageRule(**earlier).to_dict() == earlier
+    averaged = StageRule(**earlier, ema_decay=0.995)
+    assert averaged.to_dict() == {**earlier, "ema_decay": 0.995}
+    assert StageRule(**averaged.to_dict()) == averaged
+    assert averaged.describe().endswith("; weights: moving average, decay 0.995")
+    with pytest.raises(StageRuleError, match="ema_decay must lie in"):
+        StageRule(**earlier, ema_decay=1.0)
+
+
 class FakeTrainer:
     """Stands in for run_training: 'trains' by writing a bundle whose content names the step."""
 
