@@ -60,6 +60,7 @@ from core.geometry.grid import GridConfig
 from core.geometry.resample import warp_rigid
 from core.geometry.warp_many import warp_rigid_many
 from core.models.cost_volume import displacements, mean_correlation_3d
+from core.models.egomotion_fine import FineAlignment, align_fine, fine_grid
 from core.models.egomotion_refine import FeatureMetricRefiner
 from core.models.egomotion_rotations import candidate_angles, candidate_rotations
 from core.models.encoder3d import Encoder3D
@@ -86,6 +87,10 @@ def se3_exp_update(delta: torch.Tensor) -> torch.Tensor:
     return se3.from_rt(se3.axis_angle_to_matrix(delta[:, :3]), delta[:, 3:])
 
 
+# The fine stage of new modules and of bundles saved before it (core.models.egomotion_fine has the numbers).
+DEFAULT_FINE_ALIGNMENT = {"factor": 2, "levels": ((0.7, 0.1, 6),)}
+
+
 class EgomotionNet(nn.Module):
     """Two 4-channel input volumes (ref0 and ref1) -> `ref0_T_ref1` per scale."""
 
@@ -94,7 +99,8 @@ class EgomotionNet(nn.Module):
                  rotation_steps_deg: tuple[tuple[float, float, float], ...] | None = None,
                  rotation_counts: tuple[int, int, int] = (3, 3, 3),
                  radius: tuple[int, int, int] = (2, 1, 2), hidden: int = 128, soft_argmax: bool = True,
-                 temperature: float = 4.0, input_occupancy: str = "binary", refine: dict | None = None) -> None:
+                 temperature: float = 4.0, input_occupancy: str = "binary", refine: dict | None = None,
+                 fine_alignment: dict | None = DEFAULT_FINE_ALIGNMENT) -> None:
         super().__init__()
         self.grid = grid if isinstance(grid, GridConfig) else GridConfig.from_dict(grid)
         self.scales = tuple(scales) if scales is not None else default_scales(self.grid)
@@ -136,6 +142,11 @@ class EgomotionNet(nn.Module):
             raise ValueError(f"EgomotionNet: input_occupancy must be one of {OCCUPANCY_KINDS}")
         self.input_occupancy = input_occupancy
         self.refiner = None if refine is None else FeatureMetricRefiner(feature_dim=feature_dim, **refine)
+        # The last stage at inference (core.models.egomotion_fine): geometric alignment of the points' splat on
+        # a finer grid, from the sub-voxel stage's estimate; only for a module that has that stage and reads
+        # splats (bundles saved before the option get the default). Callers pass its volumes to `refine_fine`.
+        self.fine = (FineAlignment(**fine_alignment) if fine_alignment is not None and self.refiner is not None
+                     and input_occupancy == "splat" else None)
 
     def config(self) -> dict:
         return {"grid": self.grid.to_dict(), "in_channels": self.in_channels, "width": self.width,
@@ -144,7 +155,23 @@ class EgomotionNet(nn.Module):
                 "rotation_counts": list(self.rotation_counts), "radius": list(self.radius),
                 "hidden": self.hidden, "soft_argmax": self.soft_argmax, "temperature": self.temperature,
                 "input_occupancy": self.input_occupancy,
-                "refine": None if self.refiner is None else self.refiner.config()}
+                "refine": None if self.refiner is None else self.refiner.config(),
+                "fine_alignment": None if self.fine is None else self.fine.to_dict()}
+
+    @property
+    def fine_grid(self) -> GridConfig | None:
+        """The grid of the fine stage's volumes (None: the module has no fine stage)."""
+        return None if self.fine is None else fine_grid(self.grid, self.fine.factor)
+
+    def refine_fine(self, ref0_T_ref1: torch.Tensor, reference_fine: torch.Tensor | None,
+                    query_fine: torch.Tensor | None) -> torch.Tensor:
+        """The fine stage on an estimate B×4×4 and the frames' fine volumes B×1×Z'×Y'×X' on `fine_grid`
+        (core.models.egomotion_inputs.egomotion_fine_volume): the estimate it ends at, B×4×4; the estimate
+        as it is in training mode, without a fine stage, or without the volumes."""
+        if self.fine is None or self.training or reference_fine is None or query_fine is None:
+            return ref0_T_ref1
+        return align_fine(ref0_T_ref1, reference_fine.to(ref0_T_ref1.dtype), query_fine.to(ref0_T_ref1.dtype),
+                          self.fine_grid, self.fine)
 
     def scale_grid(self, scale: float) -> GridConfig:
         return self.grid if scale == 1.0 else self.grid.scaled(scale)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from core.geometry.poses import rig_cam_T_ref
-from core.models.egomotion_inputs import egomotion_input_volume, fused_input_volume
+from core.models.egomotion_inputs import egomotion_fine_volume, egomotion_input_volume, fused_input_volume
 from core.pipeline.moving_boxes import FrameEvidence, frame_evidence
 
 
@@ -26,7 +26,8 @@ class FrameEncoding:
 
     ego_volume: B×4×Z×Y×X egomotion input volume (None without an egomotion module or not made yet);
     ego_features: B×F'×Z×Y×X the egomotion module's encoding of it (EgomotionNet.encode), so each frame is
-    encoded once on a stream; features: B×F×Z×Y×X mapper map (None when nothing in the pair step reads it:
+    encoded once on a stream; ego_fine: B×1×Z'×Y'×X' the volume of the module's fine stage (None without
+    one: core.models.egomotion_fine); features: B×F×Z×Y×X mapper map (None when nothing in the pair step reads it:
     see `needs_map`); occupancy: B×1×Z×Y×X probabilities (None without an occupancy head);
     flow_encoded: B×C×Z×Y×X the flow module's encoding of what it compares of this frame (Flow3D.encode of
     the map, or of the binary input volume when the flow module compares input volumes); flow_volume:
@@ -36,6 +37,7 @@ class FrameEncoding:
 
     ego_volume: torch.Tensor | None = None
     ego_features: torch.Tensor | None = None
+    ego_fine: torch.Tensor | None = None
     features: torch.Tensor | None = None
     flow_encoded: torch.Tensor | None = None
     flow_volume: torch.Tensor | None = None
@@ -91,7 +93,8 @@ def is_complete(enc: FrameEncoding | None, bundle, *, evidence: bool = True) -> 
     """Whether `enc` already holds everything a pair step over `bundle` needs of its frame 0."""
     if enc is None:
         return False
-    if "egomotion" in bundle.modules and (enc.ego_volume is None or enc.ego_features is None):
+    if "egomotion" in bundle.modules and (enc.ego_volume is None or enc.ego_features is None or (
+            enc.ego_fine is None and getattr(bundle.modules["egomotion"], "fine_grid", None) is not None)):
         return False
     if needs_map(bundle) and enc.features is None:
         return False
@@ -119,6 +122,7 @@ def encode_previous(bundle, *, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam
     cam_T_ref = rig_cam_T_ref(world_T_cam, world_T_ref)  # B×V×4×4
     if ego_volume and enc.ego_volume is None and "egomotion" in bundle.modules:
         enc.ego_volume = egomotion_input_volume(bundle.modules["egomotion"], rgb, depth, pix_T_cam, cam_T_ref)
+        enc.ego_fine = egomotion_fine_volume(bundle.modules["egomotion"], depth, pix_T_cam, cam_T_ref)
         watch.lap("ego_volume")
     if ego_volume and enc.ego_features is None and enc.ego_volume is not None:
         enc.ego_features = bundle.modules["egomotion"].encode(enc.ego_volume)  # B×F'×Z×Y×X

@@ -19,7 +19,7 @@ import torch
 
 from core.geometry import se3
 from core.geometry.poses import rig_cam_T_ref
-from core.models.egomotion_inputs import egomotion_input_volume, fused_input_volume
+from core.models.egomotion_inputs import egomotion_fine_volume, egomotion_input_volume, fused_input_volume
 from core.pipeline.egomotion import egomotion_from_volumes
 from core.pipeline.encoding import FrameEncoding, Stopwatch, binary_volume, encode_previous
 from core.pipeline.flow_gate import GATE_FILL, gate_flow
@@ -84,6 +84,7 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
         net = bundle.modules["egomotion"]
         if current.ego_volume is None:
             current.ego_volume = egomotion_input_volume(net, rgb1, depth1, pix_T_cam1, cam1_T_ref1)  # B×4×Z×Y×X
+            current.ego_fine = egomotion_fine_volume(net, depth1, pix_T_cam1, cam1_T_ref1)  # B×1×Z'×Y'×X' or None
             watch.lap("ego_volume")
         if current.ego_features is None:
             current.ego_features = net.encode(current.ego_volume)  # B×F'×Z×Y×X, the next pair's reference
@@ -91,7 +92,8 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
         ego = ego_estimate
         if ego is None:
             ego = egomotion_from_volumes(net, enc0.ego_volume, current.ego_volume, cam_T_ref0, cam1_T_ref1,
-                                         features=(enc0.ego_features, current.ego_features))
+                                         features=(enc0.ego_features, current.ego_features),
+                                         fine=(enc0.ego_fine, current.ego_fine))
         out["cam0_T_cam1"] = ego["cam0_T_cam1"]
         watch.lap("egomotion")
     if stabilize == "egomotion":

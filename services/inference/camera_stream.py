@@ -173,7 +173,8 @@ class MovingStream:
                     bundle.modules["egomotion"], previous.encoding.ego_volume, encoding.ego_volume,
                     rig_cam_T_ref(world_T_cam0, self._world_T_ref(previous.frame)),
                     rig_cam_T_ref(tensors["world_T_cam"], world_T_ref1),
-                    features=(previous.encoding.ego_features, encoding.ego_features))
+                    features=(previous.encoding.ego_features, encoding.ego_features),
+                    fine=(previous.encoding.ego_fine, encoding.ego_fine))
                 ego_previous = previous.frame
                 timings["egomotion"] = time.perf_counter() - started
         self._record({f"ahead_{k}": v for k, v in timings.items()})
