@@ -122,7 +122,9 @@ def encode_previous(bundle, *, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam
     cam_T_ref = rig_cam_T_ref(world_T_cam, world_T_ref)  # B×V×4×4
     if ego_volume and enc.ego_volume is None and "egomotion" in bundle.modules:
         enc.ego_volume = egomotion_input_volume(bundle.modules["egomotion"], rgb, depth, pix_T_cam, cam_T_ref)
-        enc.ego_fine = egomotion_fine_volume(bundle.modules["egomotion"], depth, pix_T_cam, cam_T_ref)
+        watch.lap("ego_volume")
+    if ego_volume and enc.ego_fine is None and "egomotion" in bundle.modules:
+        enc.ego_fine = egomotion_fine_volume(bundle.modules["egomotion"], depth, pix_T_cam, cam_T_ref)  # or None
         watch.lap("ego_volume")
     if ego_volume and enc.ego_features is None and enc.ego_volume is not None:
         enc.ego_features = bundle.modules["egomotion"].encode(enc.ego_volume)  # B×F'×Z×Y×X

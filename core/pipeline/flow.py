@@ -84,6 +84,8 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
         net = bundle.modules["egomotion"]
         if current.ego_volume is None:
             current.ego_volume = egomotion_input_volume(net, rgb1, depth1, pix_T_cam1, cam1_T_ref1)  # B×4×Z×Y×X
+            watch.lap("ego_volume")
+        if current.ego_fine is None:
             current.ego_fine = egomotion_fine_volume(net, depth1, pix_T_cam1, cam1_T_ref1)  # B×1×Z'×Y'×X' or None
             watch.lap("ego_volume")
         if current.ego_features is None:
