@@ -6,6 +6,7 @@ import argparse
 import os
 
 from services.cli.argtypes import DEFAULT_FRAME_DT, FRAME_DT_HELP, non_negative_float, port, positive_float, positive_int
+from services.cli.egomotion_options import add_egomotion_arguments
 from services.cli.moving_options import add_moving_object_arguments, moving_objects_config
 
 
@@ -30,6 +31,7 @@ def register(subparsers) -> None:
     p.add_argument("--timeout", type=positive_float, default=30.0, help="per-request deadline in seconds (default 30)")
     p.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
     add_moving_object_arguments(p)  # the moving-objects route and both gRPC calls
+    add_egomotion_arguments(p)
     p.add_argument("--max-body-mb", type=positive_float, default=64.0, help="largest request body (default 64 MB)")
     p.add_argument("--drain", type=non_negative_float, default=10.0, help="seconds to drain in-flight requests on shutdown")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
@@ -51,7 +53,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(str(e)) from None
     runtime = RuntimeConfig(bundle_dir=args.bundle, device=args.device, num_threads=args.threads,
                             max_batch=args.max_batch, max_wait_ms=args.max_wait_ms, max_queue=args.queue,
-                            timeout_s=args.timeout, frame_dt=args.frame_dt, moving_objects=objects)
+                            timeout_s=args.timeout, frame_dt=args.frame_dt, moving_objects=objects,
+                            egomotion_fine=args.egomotion_fine)
     return serve(ServeSettings(runtime=runtime, host=args.host, http_port=args.http_port,
                                grpc_port=args.grpc_port, token=args.token or None, tls_cert=args.tls_cert,
                                tls_key=args.tls_key, max_body_bytes=int(args.max_body_mb * 2**20),

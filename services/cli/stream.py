@@ -15,6 +15,7 @@ from pathlib import Path
 
 from services.cli.argtypes import (DEFAULT_FRAME_DT, FRAME_DT_HELP, non_negative_float, non_negative_int,
                                    positive_float, positive_int)
+from services.cli.egomotion_options import add_egomotion_arguments
 from services.cli.moving_options import add_moving_object_arguments, moving_objects_config
 from services.streaming.session import add_zenoh_arguments, options_from_args
 
@@ -40,6 +41,7 @@ def register(subparsers) -> None:
                              "spin against each other and run ~10× slower)")
     bridge.add_argument("--min-score", type=float, default=0.0, help="drop boxes scored below this")
     add_moving_object_arguments(bridge)
+    add_egomotion_arguments(bridge)
     bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
     bridge.add_argument("--level", action="store_true",
                         help="map (and box) each frame in its camera levelled to gravity (frame \"level\": the camera's "
@@ -150,7 +152,8 @@ def _run_bridge(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
     options = _zenoh_options(args, default_listen=True)
     runtime = Runtime(RuntimeConfig(bundle_dir=args.bundle, device=args.device,
-                                    num_threads=args.threads or default_bridge_threads()))
+                                    num_threads=args.threads or default_bridge_threads(),
+                                    egomotion_fine=args.egomotion_fine))
     try:
         processor = RuntimeProcessor(runtime, min_score=args.min_score, frame_dt=args.frame_dt,
                                      objects=moving_objects_config(args), level=args.level,

@@ -12,6 +12,7 @@ between batches; if loading fails the old bundle stays and the error is kept in 
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import logging
 import time
@@ -49,6 +50,9 @@ class RuntimeConfig:
     # The moving-object post-processing of the moving_objects route and the gRPC stream (`serve --size-prior`,
     # `--min-object-speed`); its `dt` is unused (each pair's interval comes from its frames or frame_dt).
     moving_objects: MovingObjectsConfig = field(default_factory=MovingObjectsConfig)
+    # False: the bundle's egomotion module skips its last, finer alignment stage (core/models/egomotion_fine.py;
+    # `--no-egomotion-fine`): faster, less precise.
+    egomotion_fine: bool = True
 
     def __post_init__(self) -> None:
         if not self.frame_dt > 0:
@@ -82,12 +86,14 @@ def _missing(route: Route, bundle, item: Any | None = None) -> list[str]:
     return [m for m in route.needs(item) if m not in bundle.modules]
 
 
-def _load(path: str, device: torch.device) -> _Loaded:
+def _load(path: str, device: torch.device, *, egomotion_fine: bool = True) -> _Loaded:
     from core.bundle import load_bundle  # safetensors / weights_only: no code is unpickled
 
     bundle = load_bundle(path, device)
     for module in bundle.modules.values():
         module.eval()
+    if not egomotion_fine and hasattr(bundle.modules.get("egomotion"), "fine"):
+        bundle.modules["egomotion"].fine = None  # no fine stage: every pipeline path then skips it
     return _Loaded(bundle=bundle, version=bundle_version(bundle), path=str(path), loaded_at=time.time())
 
 
@@ -102,7 +108,7 @@ class Runtime:
         if config.num_threads and not _threads_set:
             torch.set_num_threads(config.num_threads)  # once per process: torch warns on a second call
             _threads_set = True
-        self._loaded = _load(config.bundle_dir, self.device)
+        self._loaded = _load(config.bundle_dir, self.device, egomotion_fine=config.egomotion_fine)
         self.last_reload_error: str | None = None
         self._model_thread = ThreadPoolExecutor(1, thread_name_prefix="n3dmap-model")
         self._reload_lock: asyncio.Lock | None = None
@@ -228,7 +234,8 @@ class Runtime:
             try:
                 if not Path(path).is_dir():
                     raise BundleError(f"bundle directory {path} does not exist")
-                loaded = await asyncio.get_running_loop().run_in_executor(None, _load, path, self.device)
+                loaded = await asyncio.get_running_loop().run_in_executor(
+                    None, functools.partial(_load, path, self.device, egomotion_fine=self.config.egomotion_fine))
             except Exception as e:  # any failure to load keeps the old bundle serving
                 self.last_reload_error = f"{type(e).__name__}: {e}"
                 self.metrics.reloads.labels("error").inc()
