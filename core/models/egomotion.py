@@ -88,7 +88,7 @@ def se3_exp_update(delta: torch.Tensor) -> torch.Tensor:
 
 
 # The fine stage of new modules and of bundles saved before it (core.models.egomotion_fine has the numbers).
-DEFAULT_FINE_ALIGNMENT = {"factor": 2, "levels": ((0.7, 0.1, 6),)}
+DEFAULT_FINE_ALIGNMENT = {"factor": 2, "levels": ((0.7, 0.1, 3),)}
 
 
 class EgomotionNet(nn.Module):

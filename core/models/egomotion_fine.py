@@ -15,6 +15,9 @@ Gauss-Newton (no learned part, so training never runs it: the module trains as b
 the views of each view's surface splat (core.geometry.splat.surface_splat, clamped to 1: the same
 occupancy as the module's "splat" input volumes) at `factor` times the resolution.
 
+Iterations: 3 (on 48 held-out pairs of seed 8: mean / median rotation error 0.00066 / 0.00041 rad with 3,
+0.00068 / 0.00039 with 6, 0.00065 / 0.00045 with 2; 3 instead of 6 saves ~37 ms per pair at small).
+
 Cost: a fine volume is factor³ the map grid's voxels (small, factor 2: 128×32×128 = 524 288 floats per
 frame); Gauss-Newton samples only the voxels with a non-zero gradient.
 """
@@ -38,7 +41,7 @@ class FineAlignment:
     scale, Gauss-Newton iterations) as core.models.egomotion_refine.DEFAULT_LEVELS, run in order."""
 
     factor: int = 2
-    levels: tuple[tuple[float, float, int], ...] = ((0.7, 0.1, 6),)
+    levels: tuple[tuple[float, float, int], ...] = ((0.7, 0.1, 3),)
     damping: float = 1e-3
     max_step: tuple[float, float] = (0.05, 1.0)
 
