@@ -51,7 +51,6 @@ def egomotion_fine_volume(net, depth: torch.Tensor, pix_T_cam: torch.Tensor,
     """The volume of an egomotion module's fine stage (core.models.egomotion_fine.fine_occupancy on
     `net.fine_grid`; depth B×V×H×W, pix_T_cam / cam_T_ref B×V×4×4) -> B×1×Z'×Y'×X', or None when the
     module has no fine stage (or is training: the stage runs at inference only)."""
-    grid = getattr(net, "fine_grid", None)
-    if grid is None or net.training:
+    if net.fine_grid is None or net.training:
         return None
-    return fine_occupancy(depth, pix_T_cam, cam_T_ref, grid)
+    return fine_occupancy(depth, pix_T_cam, cam_T_ref, net.fine_grid)

@@ -33,8 +33,7 @@ def egomotion_from_volumes(net, vol0: torch.Tensor, vol1: torch.Tensor, cam_T_re
         f0 = net.encode(vol0) if f0 is None else f0  # B×F'×Z×Y×X
         f1 = net.encode(vol1) if f1 is None else f1
         ref0_T_ref1 = net.align(f0, f1, vol0, vol1)["ref0_T_ref1"]  # B×4×4
-    if hasattr(net, "refine_fine"):
-        ref0_T_ref1 = net.refine_fine(ref0_T_ref1, *fine)  # B×4×4
+    ref0_T_ref1 = net.refine_fine(ref0_T_ref1, *fine)  # B×4×4 (as it was without a fine stage or volumes)
     cam0_T_cam1 = cam_T_ref0[:, 0] @ ref0_T_ref1 @ se3.invert(cam_T_ref1[:, 0])
     return {"ref0_T_ref1": ref0_T_ref1, "cam0_T_cam1": cam0_T_cam1}
 

@@ -94,7 +94,7 @@ def is_complete(enc: FrameEncoding | None, bundle, *, evidence: bool = True) -> 
     if enc is None:
         return False
     if "egomotion" in bundle.modules and (enc.ego_volume is None or enc.ego_features is None or (
-            enc.ego_fine is None and getattr(bundle.modules["egomotion"], "fine_grid", None) is not None)):
+            enc.ego_fine is None and bundle.modules["egomotion"].fine_grid is not None)):
         return False
     if needs_map(bundle) and enc.features is None:
         return False

@@ -92,7 +92,7 @@ def _load(path: str, device: torch.device, *, egomotion_fine: bool = True) -> _L
     bundle = load_bundle(path, device)
     for module in bundle.modules.values():
         module.eval()
-    if not egomotion_fine and hasattr(bundle.modules.get("egomotion"), "fine"):
+    if not egomotion_fine and "egomotion" in bundle.modules:
         bundle.modules["egomotion"].fine = None  # no fine stage: every pipeline path then skips it
     return _Loaded(bundle=bundle, version=bundle_version(bundle), path=str(path), loaded_at=time.time())
 
