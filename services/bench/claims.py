@@ -157,7 +157,7 @@ def check_claims(per_seed: dict, *, budgets: list[str], variants: list[str] | No
         "occupied .97, free .98, all .98", [AtLeast("acc_occupied", 0.95), AtLeast("acc_free", 0.95)], v,
         ["acc_occupied", "acc_free", "acc_all"], quick=quick,
         note="occupancy module fine-tuned from the contrastive pretraining, at the balanced threshold chosen on the "
-             "validation records"))
+             "validation records (each view as the input in turn)"))
 
     if any(_get(r, "egomotion", "methods", "model", "rot_err_rad_mean") is not None for r in per_seed.values()):
         def err(method: str, key: str):

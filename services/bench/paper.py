@@ -317,8 +317,9 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
 
     # Occupancy from one view (the paper's protocol). The claim reads the occupancy module trained the way
     # it is tested (a map of one view, labels from it and one other view; `n3dmap train occupancy`), mapper
-    # fine-tuned from the contrastive pretraining, at the balanced threshold (occupancy_protocol.
-    # balanced_threshold) chosen on the validation records; the same module at 0.5 beside it. Each
+    # fine-tuned from the contrastive pretraining, at the balanced threshold chosen on the validation records
+    # with each of their views as the input in turn (occupancy_protocol.choose_balanced_threshold); the same
+    # module at 0.5 beside it. Each
     # pretraining's own head is read too: it is trained on maps fused from all views but one, so a single
     # view's map is not what it learned on.
     from core.eval.protocols import occupancy as occupancy_protocol
@@ -330,10 +331,9 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
 
     def balanced_scores(bundle_dir: Path) -> dict:
         bundle = load_bundle(bundle_dir, device)
-        on_val = occupancy_protocol.scores_by_threshold(bundle, val_records, device=device)
-        threshold = occupancy_protocol.balanced_threshold(on_val)
+        threshold, on_val = occupancy_protocol.choose_balanced_threshold(bundle, val_records, device=device)
         return {**occupancy_scores(bundle, threshold), "threshold": threshold,
-                "val_acc_occupied": on_val[threshold]["acc_occupied"], "val_acc_free": on_val[threshold]["acc_free"]}
+                "val_acc_occupied": on_val["acc_occupied"], "val_acc_free": on_val["acc_free"]}
     occupancy_dir = train("occupancy_contrastive", task="occupancy", rule=rules.occupancy,
                           task_options=config.stage_options("occupancy", {}), init_bundle=pretrained["contrastive"])
     result["occupancy"][OCCUPANCY_MODULE] = evaluate("occupancy/module_contrastive_balanced",

@@ -103,8 +103,9 @@ def test_eval_occupancy_report_and_errors(setup):
 
 
 def test_eval_occupancy_balanced_threshold_is_chosen_on_other_records(setup):
-    """--balanced-on DIR picks the threshold on DIR's records (the same rule and grid as bench paper) and
-    scores --data with it; the records it scores may not be the ones it chose on."""
+    """--balanced-on DIR picks the threshold on DIR's records, each view as the input in turn (the same rule
+    and grid as bench paper), and scores --data with it; the records it scores may not be the ones it chose
+    on."""
     root, records = setup
     val = root / "val"
     if not val.exists():
@@ -114,7 +115,8 @@ def test_eval_occupancy_balanced_threshold_is_chosen_on_other_records(setup):
     proc = _run(root, "occupancy", "--out", str(out), "--balanced-on", str(val))
     settings = json.loads((out / "metrics.json").read_text())["settings"]
     bundle = load_bundle(root / "bundle")
-    expected = balanced_threshold(scores_by_threshold(bundle, list(ShardDataset(val)), device="cpu"))
+    expected = balanced_threshold(scores_by_threshold(bundle, list(ShardDataset(val)), input_views=None,
+                                                      device="cpu"))
     assert settings["threshold"] == pytest.approx(expected)
     assert settings["threshold_chosen_on"]["data"] == str(val)
     assert f"threshold {expected:g} (balanced on {val})" in proc.stdout

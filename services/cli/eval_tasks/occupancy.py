@@ -7,7 +7,7 @@ from core.device import resolve_device
 from pathlib import Path
 
 from core.eval.protocols.occupancy import (
-    NEEDS, OccupancyEvalConfig, balanced_threshold, evaluate, scores_by_threshold,
+    NEEDS, OccupancyEvalConfig, choose_balanced_threshold, evaluate,
 )
 from services.cli.errors import CliError
 from services.cli.eval import add_eval_parser, check_data_preset, iter_records, load_bundle_for_eval
@@ -23,8 +23,8 @@ def register(kinds) -> None:
     choice.add_argument("--threshold", type=float, default=None, help="P(occupied) threshold (default 0.5)")
     choice.add_argument("--balanced-on", metavar="DIR", default=None,
                         help="choose the threshold on another dataset (e.g. validation records): the one of 0.05, "
-                             "0.10, ..., 0.95 whose worse class accuracy there is highest, as `bench paper` does; "
-                             "then score --data with it")
+                             "0.10, ..., 0.95 whose worse class accuracy there is highest, each of its views taken "
+                             "as the input in turn, as `bench paper` does; then score --data with it")
     parser.set_defaults(func=run)
 
 
@@ -41,11 +41,9 @@ def run(args) -> int:
         if Path(args.balanced_on).resolve() == Path(args.data).resolve():
             raise CliError("--balanced-on must name other records than --data (a threshold chosen on the scored "
                            "records flatters them)")
-        on = scores_by_threshold(bundle, iter_records(args.balanced_on, args.max_records, flag="--balanced-on"),
-                                 input_view=args.input_view, device=device)
-        threshold = balanced_threshold(on)
-        chosen_on = {"data": args.balanced_on, "acc_occupied": on[threshold]["acc_occupied"],
-                     "acc_free": on[threshold]["acc_free"]}
+        threshold, on = choose_balanced_threshold(
+            bundle, iter_records(args.balanced_on, args.max_records, flag="--balanced-on"), device=device)
+        chosen_on = {"data": args.balanced_on, "acc_occupied": on["acc_occupied"], "acc_free": on["acc_free"]}
     result = evaluate(bundle, iter_records(args.data, args.max_records),
                       OccupancyEvalConfig(input_view=args.input_view, threshold=threshold), device=device)
     s = result["scores"]

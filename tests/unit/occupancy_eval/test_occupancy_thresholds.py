@@ -7,7 +7,8 @@ import torch
 
 from core.bundle import Bundle
 from core.eval.protocols.occupancy import (
-    THRESHOLD_GRID, OccupancyEvalConfig, balanced_threshold, evaluate, scores_by_threshold,
+    THRESHOLD_GRID, OccupancyEvalConfig, balanced_threshold, choose_balanced_threshold, evaluate,
+    scores_by_threshold,
 )
 from core.presets import get_preset
 from core.synthetic import generate_record
@@ -45,3 +46,31 @@ def test_scores_by_threshold_equal_one_evaluation_per_threshold():
     free = [fast[th]["acc_free"] for th in thresholds]
     assert occ == sorted(occ, reverse=True) and free == sorted(free)
     assert THRESHOLD_GRID[0] == 0.05 and THRESHOLD_GRID[-1] == 0.95 and len(THRESHOLD_GRID) == 19
+
+
+def test_every_view_scores_pool_the_voxels_of_each_single_view_evaluation():
+    """input_views=None counts each record's every view as the input in turn: the accuracies equal the
+    voxel-weighted pool of one `evaluate` per view, and the chosen threshold is the balanced one of those."""
+    torch.manual_seed(0)
+    task = build_task("occupancy", TINY).eval()
+    bundle = Bundle(preset=TINY, modules=dict(task.exported_modules()))
+    records = [generate_record(TINY, seed=s, num_frames=1) for s in (5, 6)]
+    V = records[0]["rgb"].shape[1]
+    assert V > 1
+    thresholds = (0.3, 0.5)
+    pooled = scores_by_threshold(bundle, records, thresholds, input_views=None, device="cpu")
+    for th in thresholds:
+        per_view = [evaluate(bundle, records, OccupancyEvalConfig(input_view=v, threshold=th), device="cpu")["scores"]
+                    for v in range(V)]
+        for cls in ("occupied", "free"):
+            n = sum(s[f"voxels_{cls}"] for s in per_view)
+            correct = sum(s[f"acc_{cls}"] * s[f"voxels_{cls}"] for s in per_view)
+            assert pooled[th][f"voxels_{cls}"] == n
+            assert pooled[th][f"acc_{cls}"] == pytest.approx(correct / n)
+    # one view listed explicitly is that view's evaluation
+    one = scores_by_threshold(bundle, records, thresholds, input_views=(1,), device="cpu")
+    assert one[0.5] == pytest.approx(
+        evaluate(bundle, records, OccupancyEvalConfig(input_view=1, threshold=0.5), device="cpu")["scores"], nan_ok=True)
+    every = scores_by_threshold(bundle, records, input_views=None, device="cpu")
+    threshold, at = choose_balanced_threshold(bundle, records, device="cpu")
+    assert threshold == balanced_threshold(every) and at == every[threshold]
