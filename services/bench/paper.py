@@ -41,7 +41,7 @@ from core.device import resolve_device
 from services.bench.plan import (
     OCCUPANCY_MODULE, OCCUPANCY_MODULE_AT_HALF, PRETRAINED_ARMS, BenchConfig, BenchConfigError,
 )
-from services.bench.stages import StageRunner, write_json
+from services.bench.stages import StageRunner, journal_size, stages_ran_since, write_json
 from services.bench.stopping import MARKER as TRAIN_MARKER
 from services.threads import ThreadPlan, plan_threads
 
@@ -87,7 +87,11 @@ def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds:
     if workers > 1:
         parallel = _thread_plan(workers, threads, cap_processes=False)
         log(f"[bench] threads, seeds in parallel: {parallel.describe(independent=True)}")
+        journal_start = journal_size(out / "work")
         _run_seed_workers(out, config, parallel, log)
+        ran_by_workers = stages_ran_since(out / "work", journal_start)
+    else:
+        ran_by_workers = []
     results: dict = {"seeds": {}}
     test_records = _load_records(data["test"])
     val_records = _load_records(data["val"])
@@ -96,7 +100,7 @@ def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds:
 
     wall = time.monotonic() - started
     metrics = write_bench_report(out, config=config, results=results, stage_seconds=dict(stages.seconds),
-                                 wall_time_s=wall, ran=list(stages.ran), stopping=_stopping(out, config))
+                                 wall_time_s=wall, ran=[*ran_by_workers, *stages.ran], stopping=_stopping(out, config))
     log(f"[bench] report: {out / 'report.md'} ({wall:.1f} s this run; "
         f"{sum(v for v in stages.seconds.values() if v == v):.1f} s over all stages)")
     return metrics

@@ -95,9 +95,38 @@ class StageRunner:
         return stage_dir
 
     def _append(self, name: str, seconds: float, status: str) -> None:
-        with open(self.work / "stages.jsonl", "a") as f:
+        with open(self.work / JOURNAL, "a") as f:
             f.write(json.dumps({"stage": name, "seconds": round(seconds, 3), "status": status,
                                 "time": time.strftime("%Y-%m-%dT%H:%M:%S")}) + "\n")
+
+
+JOURNAL = "stages.jsonl"   # one line per stage and invocation: {stage, seconds, status ("ran"/"skipped"), time}
+
+
+def journal_size(work: Path) -> int:
+    """Bytes of WORK/stages.jsonl now (0 when absent): where the lines of what runs next begin."""
+    path = Path(work) / JOURNAL
+    return path.stat().st_size if path.exists() else 0
+
+
+def stages_ran_since(work: Path, offset: int) -> list[str]:
+    """The stages journaled as "ran" after byte `offset` of WORK/stages.jsonl, in journal order: what seed
+    worker processes ran for this invocation (each appends to the same journal)."""
+    path = Path(work) / JOURNAL
+    if not path.exists():
+        return []
+    with open(path, "rb") as f:
+        f.seek(offset)
+        lines = f.read().decode().splitlines()
+    ran = []
+    for line in lines:
+        try:
+            entry = json.loads(line)
+        except ValueError:
+            continue   # a line cut off by a killed worker: its stage has no completion marker and reruns anyway
+        if entry.get("status") == "ran":
+            ran.append(entry["stage"])
+    return ran
 
 
 def stage_digest(spec: Mapping, inputs: Sequence[str]) -> str:

@@ -173,6 +173,10 @@ def test_changed_plan_is_refused_unless_rerun_changed_redoes_only_what_it_touche
     ran = {e["stage"] for e in appended if e["status"] == "ran"}
     assert ran == {f"seed{seed}/{stage}" for seed in (0, 1) for stage in (
         "flow_regression", "flow_contrastive", "eval/flow/regression", "eval/flow/contrastive", "eval/moving/all")}
+    # and the report counts the stages the workers ran as this invocation's
+    report = (copy / "report.md").read_text()
+    assert f"Stages rerun by this invocation: {len(ran)} of " in report
+    assert f"| seed1/flow_contrastive |" in report and re.search(r"\| seed1/flow_contrastive \| [\d.]+ \| yes \|", report)
     bundle = json.loads((copy / "work" / "seed0" / "flow_contrastive" / "bundle" / "bundle.json").read_text())
     assert bundle["modules"]["flow"]["config"]["refine_radius"] == [1, 1, 1]
     assert json.loads((copy / "work" / "plan.json").read_text())["task_options"] == options
