@@ -32,6 +32,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Callable
 
@@ -59,7 +60,7 @@ def detector_stage(arm: str, mode: str, budget: int | None) -> str:
 
 
 def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds: int = 1,
-                    threads: int | None = None, rerun_changed: bool = False,
+                    threads: int | None = None, rerun_changed: bool = False, redo: Sequence[str] = (),
                     log: Callable[[str], None] = print) -> dict:
     """Run (or continue) the whole benchmark into `out_dir`; returns the report's metrics dict.
 
@@ -67,13 +68,18 @@ def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds:
     run one thread each, time-sliced (3 seeds on 2 CPUs then end together, instead of the third training
     alone on one CPU while the other idles); threads: torch threads per process instead of the plan's share
     (may oversubscribe); rerun_changed: `out_dir` may hold a benchmark of another plan, whose stages that
-    the change touches are redone (services.bench.replan) and the others kept."""
+    the change touches are redone (services.bench.replan) and the others kept; redo: stage-name patterns
+    whose stages, and every stage downstream of them, are redone (after a code change)."""
     from services.bench.report import write_bench_report
 
     started = time.monotonic()
     out = Path(out_dir)
     stages = StageRunner(out / "work", log)
     _check_same_plan(out / "work" / "plan.json", config, rerun_changed=rerun_changed, log=log)
+    if redo:
+        from services.bench.replan import forget_matching
+
+        forget_matching(config, out / "work", redo, log)
     device = resolve_device(config.device)
     log(f"[bench] paper benchmark, preset {config.preset}, seeds {list(config.seeds)}, device {device}"
         f"{', bf16 training' if config.precision == 'bf16' else ''}, "

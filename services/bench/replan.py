@@ -8,29 +8,70 @@ not the pretrainings or the detectors. Those stages' directories are deleted, an
 the new plan no longer has (a label budget dropped, say); the rerun then redoes the touched ones and skips
 the rest as usual.
 
-Code changes are not in the digests: after changing code, delete the stages it affects by hand.
+Code changes are not in the digests: after changing code, name the stages it affects with `bench paper
+--redo PATTERN` (`forget_matching`): the stages whose names match, and every stage that reads their output
+(directly or further down), are deleted and redone.
 """
 
 from __future__ import annotations
 
 import shutil
+from collections.abc import Sequence
 from dataclasses import replace
+from fnmatch import fnmatchcase
 from pathlib import Path
 from typing import Callable
 
-from services.bench.plan import BenchConfig
+from services.bench.plan import BenchConfig, BenchConfigError
 from services.bench.stages import StageRunner
 
 
-def stage_digests(config: BenchConfig, work: Path) -> dict[str, str]:
-    """{stage name: digest} of every stage `config` runs (nothing is run or written)."""
+def _dry_run(config: BenchConfig, work: Path) -> StageRunner:
+    """Every stage `config` runs, recorded (digests and inputs) without running or writing anything."""
     from services.bench.paper import _data_stages, _seed_stages
 
     stages = StageRunner(work, log=lambda _: None, dry=True)
     data = _data_stages(stages, config)
     for seed in config.seeds:
         _seed_stages(stages, config, seed, data, [], [], "cpu")
-    return stages.digests
+    return stages
+
+
+def stage_digests(config: BenchConfig, work: Path) -> dict[str, str]:
+    """{stage name: digest} of every stage `config` runs (nothing is run or written)."""
+    return _dry_run(config, work).digests
+
+
+def matching_and_downstream(config: BenchConfig, work: Path, patterns: Sequence[str]) -> list[str]:
+    """The stages of `config` whose names match any of the shell-style `patterns` (fnmatch: `*` also
+    matches `/`, e.g. "seed*/egomotion", "seed*/eval/occupancy/*"), and every stage that reads one of them,
+    directly or through others; in the plan's order. A pattern that matches no stage is an error."""
+    # seeds with output on disk too: a seed left out of this run must not keep a stale stage for a later one
+    seeds = tuple(sorted(set(config.seeds) | _seeds_on_disk(Path(work))))
+    stages = _dry_run(replace(config, seeds=seeds), work)
+    names = list(stages.inputs)
+    unmatched = [p for p in patterns if not any(fnmatchcase(n, p) for n in names)]
+    if unmatched:
+        raise BenchConfigError(f"--redo {unmatched[0]!r} matches no stage of this plan (stage names look like "
+                               f"{', '.join(repr(n) for n in names[-3:])}; the report's stage table lists them all)")
+    chosen = {n for n in names if any(fnmatchcase(n, p) for p in patterns)}
+    for name in names:   # the plan records a stage after every stage it reads, so one pass closes the set
+        if chosen.intersection(stages.inputs[name]):
+            chosen.add(name)
+    return [n for n in names if n in chosen]
+
+
+def forget_matching(config: BenchConfig, work: Path, patterns: Sequence[str], log: Callable[[str], None]) -> list[str]:
+    """Delete the output of the stages `matching_and_downstream` names; returns those that had output."""
+    removed = []
+    for name in matching_and_downstream(config, work, patterns):
+        stage_dir = Path(work) / name
+        if stage_dir.exists():
+            shutil.rmtree(stage_dir)
+            removed.append(name)
+    log(f"[bench] --redo {' '.join(patterns)}: {len(removed)} finished or started stage(s) redone"
+        + (f": {', '.join(removed)}" if removed else ""))
+    return removed
 
 
 def changed_stages(earlier: BenchConfig, current: BenchConfig, work: Path) -> list[str]:

@@ -41,6 +41,7 @@ class StageRunner:
     ran: list[str] = field(default_factory=list)               # stages this invocation actually ran
     dry: bool = False                                          # record digests only; run and create nothing
     digests: dict[str, str] = field(default_factory=dict)      # stage -> digest of its spec and its inputs'
+    inputs: dict[str, tuple[str, ...]] = field(default_factory=dict)  # stage -> the stages whose outputs it reads
 
     def __post_init__(self) -> None:
         self.work = Path(self.work)
@@ -62,6 +63,7 @@ class StageRunner:
         """Record (and return) stage `name`'s digest without running it (`run` does this first)."""
         # the name too: it carries the seed and what an evaluation computes (two evaluations may read the same)
         self.digests[name] = stage_digest({"stage": name, **(spec or {})}, [self.digests[a] for a in after])
+        self.inputs[name] = tuple(after)
         return self.digests[name]
 
     def run(self, name: str, marker: str, fn: Callable[[Path], None], *, spec: Mapping | None = None,

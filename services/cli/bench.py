@@ -5,7 +5,8 @@
 Everything lands in REPORT_DIR: report.md, metrics.json and PNG plots at the top, every stage's
 dataset, run and metrics under REPORT_DIR/work/. Rerunning the same command continues a cut-off run
 (finished stages are skipped, a training stage resumes from its last checkpoint); `--rerun-changed`
-continues it under a changed plan, redoing only the stages the change touches (services/bench/replan.py). See
+continues it under a changed plan, redoing only the stages the change touches (services/bench/replan.py), and
+`--redo PATTERN` redoes the named stages and what reads them (after a code change). See
 services/bench/paper.py for the stages and services/bench/plan.py for the per-preset plans.
 """
 
@@ -80,6 +81,11 @@ def register(subparsers) -> None:
                    help="REPORT_DIR may hold a benchmark of another plan: redo only the stages the change "
                         "touches (their settings or inputs differ) and keep the rest; without it a changed "
                         "plan is refused")
+    p.add_argument("--redo", nargs="+", default=(), metavar="PATTERN",
+                   help="redo the stages whose names match a shell-style PATTERN (e.g. 'seed*/egomotion', "
+                        "'seed*/eval/occupancy/*'; names as in the report's stage table) and every stage that reads "
+                        "their output: what a code change needs, since stages are keyed by their settings, not "
+                        "the code")
     p.set_defaults(func=run)
 
 
@@ -115,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
     config = config_from_args(args)
     parallel = args.parallel_seeds if args.parallel_seeds is not None else min(len(config.seeds), usable_cpus())
     metrics = run_paper_bench(config, args.out, parallel_seeds=parallel, threads=args.threads,
-                              rerun_changed=args.rerun_changed)
+                              rerun_changed=args.rerun_changed, redo=tuple(args.redo))
     for claim in metrics["claims"]:
         print(f"  {claim['id']}: {claim['verdict']} ({claim['reason']}; {claim['ours']})")
     return 0

@@ -183,6 +183,25 @@ def test_changed_plan_is_refused_unless_rerun_changed_redoes_only_what_it_touche
     assert json.loads((copy / "metrics.json").read_text())["metrics"]["config"]["task_options"] == options
 
 
+def test_redo_reruns_the_named_stages_and_what_reads_them_and_refuses_an_unknown_name(bench_run, tmp_path):
+    out, _ = bench_run
+    copy = tmp_path / "report"
+    shutil.copytree(out, copy)
+    journal = copy / "work" / "stages.jsonl"
+    before = len(journal.read_text().splitlines())
+    rerun = _bench(copy, extra=("--redo", "seed1/egomotion", "seed*/eval/occupancy/module_contrastive_balanced"))
+    assert "[bench] --redo " in rerun.stdout
+    appended = [json.loads(l) for l in journal.read_text().splitlines()[before:]]
+    ran = {e["stage"] for e in appended if e["status"] == "ran"}
+    assert ran == {"seed1/egomotion", "seed1/eval/egomotion/moving_camera", "seed1/eval/moving/all",
+                   "seed0/eval/occupancy/module_contrastive_balanced",
+                   "seed1/eval/occupancy/module_contrastive_balanced"}
+    assert f"Stages rerun by this invocation: {len(ran)} of " in (copy / "report.md").read_text()
+    bad = _bench(copy, extra=("--redo", "seed0/no_such_stage"), check=False)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr, bad.stderr[-2000:]
+    assert "--redo 'seed0/no_such_stage' matches no stage" in bad.stderr
+
+
 def test_occupancy_and_egomotion_stages_export_their_weight_average(bench_run):
     from safetensors.torch import load_file
 

@@ -9,7 +9,10 @@ from dataclasses import replace
 import pytest
 
 from services.bench.plan import plan_for, with_steps
-from services.bench.replan import changed_stages, forget_changed, stage_digests
+from services.bench.plan import BenchConfigError
+from services.bench.replan import (
+    _dry_run, changed_stages, forget_changed, forget_matching, matching_and_downstream, stage_digests,
+)
 from services.bench.stages import StageRunner, stage_digest
 
 
@@ -108,3 +111,40 @@ def test_seeds_outside_this_run_and_stages_the_new_plan_drops_are_covered(plan, 
     dropped = set(changed_stages(plan, fewer, tmp_path))
     assert dropped == {f"seed{s}/{d}" for s in (0, 1) for d in _detectors(plan) if d.endswith("_L2")} | {
         f"seed{s}/eval/detection/{d[len('detector_'):]}" for s in (0, 1) for d in _detectors(plan) if d.endswith("_L2")}
+
+
+def _downstream_slow(inputs: dict, start: set) -> set:
+    """Every stage reading (directly or through others) a stage of `start`, and `start`: a fixpoint loop."""
+    chosen = set(start)
+    while True:
+        more = {n for n, ins in inputs.items() if chosen.intersection(ins)} - chosen
+        if not more:
+            return chosen
+        chosen |= more
+
+
+def test_redo_names_the_matching_stages_and_everything_downstream(plan, tmp_path):
+    inputs = _dry_run(plan, tmp_path).inputs
+    redo = matching_and_downstream(plan, tmp_path, ["seed*/egomotion"])
+    assert set(redo) == _downstream_slow(inputs, {"seed0/egomotion"})
+    assert redo[0] == "seed0/egomotion" and "seed0/eval/moving/all" in redo   # the pipeline reads the module
+    assert not any("pretrain" in n or "detector" in n for n in redo)
+    assert redo == [n for n in inputs if n in set(redo)]                        # in the plan's order
+    # a pretraining reaches almost everything of its seed; an evaluation only itself
+    pretrain = matching_and_downstream(plan, tmp_path, ["seed0/pretrain_contrastive"])
+    assert set(pretrain) == _downstream_slow(inputs, {"seed0/pretrain_contrastive"}) and len(pretrain) > 10
+    evals = matching_and_downstream(plan, tmp_path, ["seed0/eval/occupancy/*"])
+    assert evals and all(n.startswith("seed0/eval/occupancy/") for n in evals)
+    with pytest.raises(BenchConfigError, match="'seed0/nothing'"):
+        matching_and_downstream(plan, tmp_path, ["seed*/egomotion", "seed0/nothing"])
+
+
+def test_forget_matching_deletes_the_named_and_downstream_stages_of_every_seed_on_disk(plan, tmp_path):
+    for name in ("seed0/egomotion", "seed0/eval/moving/all", "seed0/flow_volume", "seed1/egomotion"):
+        (tmp_path / name).mkdir(parents=True)
+        (tmp_path / name / "metrics.json").write_text("{}")
+    lines = []
+    removed = forget_matching(plan, tmp_path, ["seed*/egomotion"], lines.append)   # the plan has seed 0 only
+    assert removed == ["seed0/egomotion", "seed0/eval/moving/all", "seed1/egomotion"]
+    assert (tmp_path / "seed0/flow_volume").exists() and not (tmp_path / "seed1/egomotion").exists()
+    assert "3 finished or started stage(s) redone" in lines[-1]
