@@ -22,16 +22,23 @@ from core.geometry.grid import GridConfig, mem_T_ref, ref_T_mem, voxel_centers_m
 from core.geometry.resample import warp_rigid
 
 MOTION_RANGES = {"large": (6.0, 1.0), "small": (1.0, 0.1), "zero": (0.0, 0.0)}  # (degrees, metres)
+# The motions of re-unprojected synthetic pairs (core.tasks.flow, `reproject_fraction`): zero motion gives an
+# identical pair there, so its third is a jitter at the egomotion module's error scale (~0.01° / 3 mm mean
+# on held-out static-camera pairs) instead: a pose off by that much re-voxelises the scene (README, "Which
+# voxels move"), and the flow must read that as the tiny rigid motion it is.
+REPROJECT_RANGES = {"large": (6.0, 1.0), "small": (1.0, 0.1), "jitter": (0.05, 0.01)}
 
 
 def sample_motions(B: int, *, generator: torch.Generator | None = None, dtype=torch.float32,
-                   device=None) -> tuple[torch.Tensor, list[str]]:
-    """B motions B×4×4 and their kinds, cycling large/small/zero from a random start (equal thirds)."""
-    kinds = list(MOTION_RANGES)
-    start = int(torch.randint(3, (1,), generator=generator))
-    names = [kinds[(start + i) % 3] for i in range(B)]
-    deg = torch.tensor([MOTION_RANGES[n][0] for n in names], dtype=torch.float64)
-    met = torch.tensor([MOTION_RANGES[n][1] for n in names], dtype=torch.float64)
+                   device=None, ranges: dict[str, tuple[float, float]] = MOTION_RANGES) -> tuple[torch.Tensor, list[str]]:
+    """B motions B×4×4 and their kinds, cycling through `ranges`' kinds (large/small/zero by default) from a
+    random start (equal shares); each kind's rotation about each axis and translation along each axis
+    uniform within its (degrees, metres)."""
+    kinds = list(ranges)
+    start = int(torch.randint(len(kinds), (1,), generator=generator))
+    names = [kinds[(start + i) % len(kinds)] for i in range(B)]
+    deg = torch.tensor([ranges[n][0] for n in names], dtype=torch.float64)
+    met = torch.tensor([ranges[n][1] for n in names], dtype=torch.float64)
     u = torch.rand(B, 6, generator=generator, dtype=torch.float64) * 2.0 - 1.0  # B×6 in [-1, 1]
     angles = u[:, :3] * deg[:, None] * (math.pi / 180.0)
     R = se3.euler_to_matrix(angles[:, 0], angles[:, 1], angles[:, 2])  # B×3×3

@@ -15,6 +15,10 @@ Losses:
                with probability `object_fraction` per step the motion instead moves one random block
                of F0 (object-sized, core.models.flow_synthetic.sample_object_motions) and leaves the
                rest static — still self-supervised, at the scale of the objects real pairs contain;
+               with probability `reproject_fraction` a rigid step's moved input is frame t itself
+               re-unprojected with the motion (its depth points lifted with cam_T_ref·M⁻¹, motions from
+               REPROJECT_RANGES: large, small and a jitter at the egomotion module's error scale) instead
+               of F0 resampled: a pose error re-voxelises the scene, which resampling never shows the module;
   warp       — mean over the OCCUPIED voxels of t (any view's depth point in the voxel; self-supervised)
                of Σ_c |F0 − warp_flow(F1, flow(F0, F1))| (3D feature constancy). Why occupied only: free
                space carries no motion evidence, and averaging over all voxels (tiny: ~15% occupied,
@@ -36,7 +40,9 @@ from core.geometry import se3
 from core.geometry.grid import GridConfig
 from core.geometry.resample import warp_flow, warp_rigid
 from core.models.flow3d import FLOW_INPUTS, VOLUME_CHANNELS, Flow3D, downsample_flow
-from core.models.flow_synthetic import move_block, rigid_flow, sample_motions, sample_object_motions
+from core.models.flow_synthetic import (
+    REPROJECT_RANGES, move_block, rigid_flow, sample_motions, sample_object_motions,
+)
 from core.models.egomotion_inputs import fused_input_volume
 from core.models.latent_map import Mapper
 from core.presets import Preset
@@ -64,6 +70,11 @@ class FlowTaskConfig:
     zero_bias: float = 0.05         # Flow3D.zero_bias: initial cosine bonus of zero motion in the refinement
     occupied_warp: bool = True      # warp loss over occupied voxels of t only (see module doc)
     object_fraction: float = 0.5    # share of steps whose synthetic motion moves one block (see module doc)
+    # Share of the rigid synthetic steps whose moved input is re-unprojected (see module doc). 0 (default):
+    # none. Why: with exact poses a static camera's static content re-voxelises identically, but a pose a
+    # few mm / 0.2 mrad off re-voxelises it differently and the module then reports metres-per-second motion
+    # in places (README, "Which voxels move"): it only ever saw resampled or identical inputs.
+    reproject_fraction: float = 0.0
     # Flow3D.inputs: "volume" (default: the fused occupancy+RGB input volumes) or "features" (mapper maps,
     # the paper's choice). Measured on tiny (bench_issue4_training.py, 150 steps): flow over the maps ties
     # zero motion on moving voxels (1.177 vs 1.156 L1 voxels); over the input volumes it beats it (0.872).
@@ -155,6 +166,17 @@ class FlowTask(nn.Module):
         return f0, f1, occupied
 
     @torch.no_grad()
+    def reprojected_input(self, batch: dict[str, torch.Tensor], t: int, motion: torch.Tensor) -> torch.Tensor:
+        """What the flow module compares for frame t after the scene moved by `motion` (B×4×4, in ref_t):
+        frame t's views lifted with cam_T_ref·motion⁻¹, so each depth point lands at motion·p, re-voxelised
+        as a real pose change would be. -> B×C×Z×Y×X (C = flow.in_channels)."""
+        rgb, depth, pix = batch["rgb"][:, t], batch["depth"][:, t], batch["pix_T_cam"]
+        cam = cam_T_ref(batch, t, t) @ se3.invert(motion)[:, None]  # B×V×4×4
+        if self.cfg.inputs == "volume":
+            return fused_input_volume(rgb, depth, pix, cam, self.cfg.grid)  # B×4×Z×Y×X
+        return self.mapper(rgb, depth, pix, cam)  # B×F×Z×Y×X
+
+    @torch.no_grad()
     def occupied(self, batch: dict[str, torch.Tensor], t: int) -> torch.Tensor:
         """Voxels of ref_t holding a depth point of any view at t: B×1×Z×Y×X float in {0, 1}."""
         vol = fused_input_volume(batch["rgb"][:, t], batch["depth"][:, t], batch["pix_T_cam"],
@@ -173,6 +195,11 @@ class FlowTask(nn.Module):
         if float(torch.rand((), generator=self._generator)) < self.cfg.object_fraction:
             motion, block = sample_object_motions(B, g, generator=self._generator, dtype=f0.dtype, device=f0.device)
             moved, gt = move_block(f0, motion, block, g)  # only the block moved
+        elif self.cfg.reproject_fraction > 0 and float(torch.rand((), generator=self._generator)) < self.cfg.reproject_fraction:
+            motion, _ = sample_motions(B, generator=self._generator, dtype=f0.dtype, device=f0.device,
+                                       ranges=REPROJECT_RANGES)
+            moved = self.reprojected_input(batch, t, motion)  # B×C×Z×Y×X: frame t lifted after the scene moved
+            gt = rigid_flow(motion, g)
         else:
             motion, _ = sample_motions(B, generator=self._generator, dtype=f0.dtype, device=f0.device)
             moved = warp_rigid(f0, se3.invert(motion), g)  # B×F×Z×Y×X: f0 after the scene moved by `motion`

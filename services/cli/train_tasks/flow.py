@@ -33,6 +33,11 @@ def register(tasks) -> None:
                         metavar=("AX", "AY", "AZ"),
                         help="average the full-grid step's costs over a box of +-AX, AY, AZ voxels before its "
                              "soft-argmax (cost aggregation; default: the task's)")
+    parser.add_argument("--reproject-fraction", type=float, default=None, metavar="P",
+                        help="share of the synthetic rigid steps whose moved input is the frame re-unprojected with "
+                             "the motion (large, small, and a jitter at the egomotion module's error scale) "
+                             "instead of resampled, so that a slightly wrong stabilising pose is not read as "
+                             "motion (default 0; README: Status, 'Which voxels move')")
     parser.set_defaults(func=_run)
 
 
@@ -50,4 +55,8 @@ def _run(args) -> int:
         options["cost_channels"] = args.cost_channels
     if args.refine_aggregate is not None:
         options["refine_aggregate"] = list(args.refine_aggregate)
+    if args.reproject_fraction is not None:
+        if not 0.0 <= args.reproject_fraction <= 1.0:
+            raise CliError(f"--reproject-fraction must lie in [0, 1], got {args.reproject_fraction}")
+        options["reproject_fraction"] = args.reproject_fraction
     return run_train("flow", args, options)
