@@ -25,6 +25,7 @@ import json
 import torch
 
 from core.bundle import load_bundle
+from core.device import resolve_device
 from core.data.shards import ShardDataset
 from core.eval.method_ap import MethodAP
 from core.eval.moving_protocol import camera_setting, gt_moving_boxes
@@ -45,24 +46,26 @@ def main() -> None:
     p.add_argument("--jitter-mm", type=float, default=3.0)
     p.add_argument("--max-records", type=int, default=None)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="cpu")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
 
     dataset = ShardDataset(args.data)
     records = [dataset[i] for i in range(len(dataset) if args.max_records is None else min(args.max_records, len(dataset)))]
-    ego = load_bundle(args.egomotion, "cpu") if args.egomotion else None
+    ego = load_bundle(args.egomotion, device) if args.egomotion else None
     rows = ["exact", f"jittered {args.jitter_mrad:g} mrad / {args.jitter_mm:g} mm"] + (["egomotion"] if ego else [])
     results = {}
     for path in args.bundle:
-        bundle = load_bundle(path, "cpu")
+        bundle = load_bundle(path, device)
         grid = bundle.preset.grid
-        config = method_configs(bundle, records, device="cpu", config=MovingObjectsConfig(), size_prior="auto")[MODEL]
+        config = method_configs(bundle, records, device=device, config=MovingObjectsConfig(), size_prior="auto")[MODEL]
         for camera in args.camera:
             acc = {row: MethodAP(IOUS) for row in rows}
             generator = torch.Generator().manual_seed(0)
             pairs = 0
             for record in records:
-                batch = record_batch(record, "cpu")
+                batch = record_batch(record, device)
                 for t in range(batch["rgb"].shape[1] - 1):
                     if camera_setting(record, t) != camera:
                         continue
@@ -77,13 +80,13 @@ def main() -> None:
                                 inputs = with_stabilising_pose(exact, estimate_egomotion(ego, **exact)["ref0_T_ref1"])
                         else:
                             error = se3.random_rigid(1, args.jitter_mrad * 1e-3, args.jitter_mm * 1e-3 / 3 ** 0.5,
-                                                     generator)
+                                                     generator, device=device)
                             inputs = with_stabilising_pose(exact, true_pose @ error)
                         with torch.no_grad():
                             out = moving_objects(bundle, **inputs, config=config)
                         valid = out["valid"][0]
-                        acc[row].add_frame(out["boxes"][0][valid].double().numpy(),
-                                           out["scores"][0][valid].double().numpy(), truth)
+                        acc[row].add_frame(out["boxes"][0][valid].double().cpu().numpy(),
+                                           out["scores"][0][valid].double().cpu().numpy(), truth)
                     pairs += 1
             print(f"{path}: {pairs} {camera}-camera pairs")
             for row, a in acc.items():

@@ -3,6 +3,7 @@ by a known rigid motion, checked against the plain ways of building the same vol
 
 import math
 
+import pytest
 import torch
 
 from core.data.batch import records_to_batch
@@ -67,4 +68,22 @@ def test_training_steps_with_every_rigid_step_reprojected_are_finite():
     for _ in range(2):
         out = task(batch)
         assert torch.isfinite(out["loss"]) and torch.isfinite(out["synth_epe"])
+        out["loss"].backward()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_reprojected_input_and_a_reprojected_training_step_on_cuda_match_cpu():
+    batch = _batch()
+    motion = se3.random_rigid(1, 0.05, 0.5, torch.Generator().manual_seed(1))
+    for inputs in ("volume", "features"):
+        torch.manual_seed(0)
+        task = FlowTask.from_preset(TINY, seed=0, inputs=inputs, reproject_fraction=1.0, object_fraction=0.0)
+        cpu = task.reprojected_input(batch, 0, motion)
+        task_cuda = task.to("cuda")
+        gpu = task_cuda.reprojected_input({k: v.to("cuda") for k, v in batch.items()}, 0, motion.to("cuda"))
+        # voxelisation: a point on a voxel face may round either way on the two devices
+        differ = float(((gpu.cpu() - cpu).abs() > 1e-3).float().mean())
+        assert differ < 0.01, (inputs, differ)
+        out = task_cuda.train()({k: v.to("cuda") for k, v in batch.items()})
+        assert out["loss"].is_cuda and torch.isfinite(out["loss"])
         out["loss"].backward()
