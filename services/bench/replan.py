@@ -63,13 +63,18 @@ def matching_and_downstream(config: BenchConfig, work: Path, patterns: Sequence[
 
 def forget_matching(config: BenchConfig, work: Path, patterns: Sequence[str], log: Callable[[str], None]) -> list[str]:
     """Delete the output of the stages `matching_and_downstream` names; returns those that had output."""
+    return _forget(matching_and_downstream(config, work, patterns), work, f"--redo {' '.join(patterns)}", log)
+
+
+def _forget(names: Sequence[str], work: Path, why: str, log: Callable[[str], None]) -> list[str]:
+    """Delete the directories of the stages `names` under `work`; returns those that existed."""
     removed = []
-    for name in matching_and_downstream(config, work, patterns):
+    for name in names:
         stage_dir = Path(work) / name
         if stage_dir.exists():
             shutil.rmtree(stage_dir)
             removed.append(name)
-    log(f"[bench] --redo {' '.join(patterns)}: {len(removed)} finished or started stage(s) redone"
+    log(f"[bench] {why}: {len(removed)} finished or started stage(s) redone"
         + (f": {', '.join(removed)}" if removed else ""))
     return removed
 
@@ -91,12 +96,4 @@ def _seeds_on_disk(work: Path) -> set[int]:
 def forget_changed(earlier: BenchConfig, current: BenchConfig, work: Path, log: Callable[[str], None]) -> list[str]:
     """Delete the output of every stage the change from `earlier` to `current` touches or drops; returns their
     names (those that had output)."""
-    removed = []
-    for name in changed_stages(earlier, current, work):
-        stage_dir = Path(work) / name
-        if stage_dir.exists():
-            shutil.rmtree(stage_dir)
-            removed.append(name)
-    log(f"[bench] plan changed: {len(removed)} finished or started stage(s) redone"
-        + (f": {', '.join(removed)}" if removed else ""))
-    return removed
+    return _forget(changed_stages(earlier, current, work), work, "plan changed", log)
