@@ -29,8 +29,8 @@ MOTION_RANGES = {"large": (6.0, 1.0), "small": (1.0, 0.1), "zero": (0.0, 0.0)}  
 REPROJECT_RANGES = {"large": (6.0, 1.0), "small": (1.0, 0.1), "jitter": (0.05, 0.01)}
 
 
-def sample_motions(B: int, *, generator: torch.Generator | None = None, dtype=torch.float32,
-                   device=None, ranges: dict[str, tuple[float, float]] = MOTION_RANGES) -> tuple[torch.Tensor, list[str]]:
+def sample_motions(B: int, *, generator: torch.Generator | None = None, dtype=torch.float32, device=None,
+                   ranges: dict[str, tuple[float, float]] = MOTION_RANGES) -> tuple[torch.Tensor, list[str]]:
     """B motions B×4×4 and their kinds, cycling through `ranges`' kinds (large/small/zero by default) from a
     random start (equal shares); each kind's rotation about each axis and translation along each axis
     uniform within its (degrees, metres)."""

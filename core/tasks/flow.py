@@ -195,7 +195,8 @@ class FlowTask(nn.Module):
         if float(torch.rand((), generator=self._generator)) < self.cfg.object_fraction:
             motion, block = sample_object_motions(B, g, generator=self._generator, dtype=f0.dtype, device=f0.device)
             moved, gt = move_block(f0, motion, block, g)  # only the block moved
-        elif self.cfg.reproject_fraction > 0 and float(torch.rand((), generator=self._generator)) < self.cfg.reproject_fraction:
+        elif (self.cfg.reproject_fraction > 0
+              and float(torch.rand((), generator=self._generator)) < self.cfg.reproject_fraction):
             motion, _ = sample_motions(B, generator=self._generator, dtype=f0.dtype, device=f0.device,
                                        ranges=REPROJECT_RANGES)
             moved = self.reprojected_input(batch, t, motion)  # B×C×Z×Y×X: frame t lifted after the scene moved

@@ -329,9 +329,8 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
     # it is tested (a map of one view, labels from it and one other view; `n3dmap train occupancy`), mapper
     # fine-tuned from the contrastive pretraining, at the balanced threshold chosen on the validation records
     # with each of their views as the input in turn (occupancy_protocol.choose_balanced_threshold); the same
-    # module at 0.5 beside it. Each
-    # pretraining's own head is read too: it is trained on maps fused from all views but one, so a single
-    # view's map is not what it learned on.
+    # module at 0.5 beside it. Each pretraining's own head is read too: it is trained on maps fused from all
+    # views but one, so a single view's map is not what it learned on.
     from core.eval.protocols import occupancy as occupancy_protocol
 
     def occupancy_scores(bundle, threshold: float = 0.5) -> dict:

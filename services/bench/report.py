@@ -184,8 +184,9 @@ def _occupancy_section(report: Report, occ: dict) -> None:
                 "occupancy`: a map of one random view, labels from it and one other view), mapper fine-tuned from "
                 "the contrastive pretraining; the claim reads it at the balanced threshold: the one (of 0.05, 0.10, "
                 "…, 0.95) whose worse class accuracy is highest on the validation records, each of their views taken "
-                "as the input in turn, then applied to the test records (at 0.5 beside it). Each pretraining also trains its own head, on maps fused from all "
-                "views but one; those heads are the other columns, at 0.5.")
+                "as the input in turn, then applied to the test records (at 0.5 beside it). Each pretraining also "
+                "trains its own head, on maps fused from all views but one; those heads are the other columns, at "
+                "0.5.")
     names = {"acc_occupied": "Occupied space", "acc_free": "Free space", "acc_all": "All space",
              "iou_occupied": "Occupied IoU", "threshold": "Threshold (balanced: chosen on the validation records)"}
     report.table(["3D area type", *occ], [[label, *[agg.fmt(occ[a][k]) for a in occ]] for k, label in names.items()])

@@ -32,6 +32,7 @@ from core.eval.moving_protocol import camera_setting, gt_moving_boxes
 from core.eval.protocols.inputs import pair_inputs, record_batch, with_stabilising_pose
 from core.eval.protocols.moving import IOUS, MODEL, method_configs
 from core.geometry import se3
+from core.geometry.poses import relative
 from core.pipeline import estimate_egomotion
 from core.pipeline.moving import MovingObjectsConfig, moving_objects
 
@@ -52,7 +53,8 @@ def main() -> None:
     device = resolve_device(args.device)
 
     dataset = ShardDataset(args.data)
-    records = [dataset[i] for i in range(len(dataset) if args.max_records is None else min(args.max_records, len(dataset)))]
+    count = len(dataset) if args.max_records is None else min(args.max_records, len(dataset))
+    records = [dataset[i] for i in range(count)]
     ego = load_bundle(args.egomotion, device) if args.egomotion else None
     rows = ["exact", f"jittered {args.jitter_mrad:g} mrad / {args.jitter_mm:g} mm"] + (["egomotion"] if ego else [])
     results = {}
@@ -71,7 +73,7 @@ def main() -> None:
                         continue
                     truth = gt_moving_boxes(record, t, grid, min_points=10)
                     exact = pair_inputs(batch, t, t + 1)
-                    true_pose = se3.invert(exact["world_T_ref0"]) @ exact["world_T_ref1"]  # B×4×4
+                    true_pose = relative(exact["world_T_ref0"], exact["world_T_ref1"])  # ref0_T_ref1 B×4×4
                     for row in rows:
                         if row == "exact":
                             inputs = exact
