@@ -50,6 +50,25 @@ def detection_table(per_seed: dict, variants, budgets: list[str], ious=("0.33", 
                          for b in budgets} for a, m in variants}
 
 
+def detection_draws_table(per_seed: dict, variants, budget: str, draws: int, iou: str = "0.5") -> dict:
+    """{"arm/mode": [Spread over seeds of draw d's mAP@iou, for d < draws]} at `budget` (the label draws'
+    budget), plus "contrastive − regression (fine-tuned)": that difference per draw where both rows exist."""
+    def draw_maps(r: dict, variant: str) -> list:
+        found = get_path(r, "detection", f"{variant}/{budget}", "draws") or []
+        return [d.get(iou) for d in found] + [None] * (draws - len(found))
+
+    table = {f"{a}/{m}": [spread(draw_maps(r, f"{a}/{m}")[d] for r in per_seed.values()) for d in range(draws)]
+             for a, m in variants}
+    pair = ("contrastive/finetuned", "regression/finetuned")
+    if all(v in table for v in pair):
+        def diff(r: dict, d: int):
+            c, g = draw_maps(r, pair[0])[d], draw_maps(r, pair[1])[d]
+            return None if c is None or g is None else c - g
+        table["contrastive − regression (fine-tuned)"] = [spread(diff(r, d) for r in per_seed.values())
+                                                          for d in range(draws)]
+    return table
+
+
 def retrieval_table(per_seed: dict, arms) -> dict:
     return {arm: {dim: {k: over_seeds(per_seed, "retrieval", arm, dim, k) for k in ("p@1", "p@5", "p@10")}
                   for dim in ("2d", "3d")} for arm in arms}

@@ -33,6 +33,18 @@ def detection(bundle: Bundle, records, *, device) -> dict:
             "frames": result["frames"]}
 
 
+def detection_over_draws(per_draw: list[dict]) -> dict:
+    """One detector row from its label draws (each `detection`'s dict, same test records): mAP and BEV AP
+    averaged per IoU over the draws, detections averaged, and "draws": each draw's mAP per IoU, in order."""
+    def mean(key: str) -> dict:
+        return {iou: sum(d[key][iou] for d in per_draw) / len(per_draw) for iou in per_draw[0][key]}
+
+    return {"map": mean("map"), "map_bev": mean("map_bev"),
+            "gt_boxes": per_draw[0]["gt_boxes"], "frames": per_draw[0]["frames"],
+            "detections": sum(d["detections"] for d in per_draw) / len(per_draw),
+            "draws": [dict(d["map"]) for d in per_draw]}
+
+
 def random_pretrain_bundle(preset, *, seed: int, device) -> Bundle:
     """The random-init arm: an untrained contrastive model's modules (seeded), as an in-memory bundle."""
     from core.tasks import build_task

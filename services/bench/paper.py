@@ -10,6 +10,8 @@
   seed<s>/detector_<arm>_<mode>_L<N>    detector per arm (random/regression/contrastive), frozen or
                                         fine-tuned features, per label budget (trained on the first N
                                         records, RUN_DIR/labelled_data, as `train detector --labels N`)
+  seed<s>/detector_..._L<N>_draw<d>     the smallest budget's further label draws (records [d·N, (d+1)·N);
+                                        plan.label_draws); its detection rows are the mean over the draws
   seed<s>/flow_<arm>                    3D flow over the frozen features of each pretrained arm
   seed<s>/flow_volume                   3D flow over the fused input volumes (n3dmap's default)
   seed<s>/egomotion                     the egomotion module
@@ -55,8 +57,9 @@ def budget_name(budget: int | None) -> str:
     return "all" if budget is None else str(budget)
 
 
-def detector_stage(arm: str, mode: str, budget: int | None) -> str:
-    return f"detector_{arm}_{mode}_L{budget_name(budget)}"
+def detector_stage(arm: str, mode: str, budget: int | None, draw: int = 0) -> str:
+    """Draw 0 keeps the name it had before label draws existed, so a plan of one draw keeps its stages."""
+    return f"detector_{arm}_{mode}_L{budget_name(budget)}" + (f"_draw{draw}" if draw else "")
 
 
 def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds: int = 1,
@@ -197,6 +200,7 @@ def _check_same_plan(path: Path, config: BenchConfig, *, rerun_changed: bool = F
         earlier = {k: v for k, v in json.loads(path.read_text()).items() if k not in ("seeds", "workers", "device")}
         earlier.setdefault("precision", "fp32")  # plans written before the option trained in fp32
         earlier.setdefault("task_options", {})  # plans written before the option ran the tasks' defaults
+        earlier.setdefault("label_draws", 1)     # plans written before label draws trained one
         if earlier != current:
             changed = sorted(k for k in set(earlier) | set(current) if earlier.get(k) != current.get(k))
             if not rerun_changed:
@@ -270,10 +274,13 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
     s = f"seed{seed}"
     rules = config.rules
 
-    def train(name: str, *, label_budget: int | None = None, data_dir: Path = data["train"], **kw) -> Path:
+    def train(name: str, *, label_budget: int | None = None, label_draw: int = 0, data_dir: Path = data["train"],
+              **kw) -> Path:
         def run(d: Path) -> None:
-            # A label budget trains on the first N records, as `n3dmap train detector --labels N` does.
-            source = data_dir if label_budget is None else labelled_subset(data_dir, d, label_budget, log=print)
+            # A label budget trains on the first N records, as `n3dmap train detector --labels N` does (draw
+            # d > 0: records [d·N, (d+1)·N)).
+            source = data_dir if label_budget is None else labelled_subset(
+                data_dir, d, label_budget, first=label_draw * label_budget, log=print)
             train_stage(config, run_dir=d, seed=seed, data_dir=source, heldout_records=val_records, **kw)
         unknown = set(kw) - {"task", "rule", "task_options", "init_bundle", "freeze", "batch_size"}
         if unknown:  # each must be in the stage's spec below, or a changed value would not rerun the stage
@@ -282,6 +289,8 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
         spec = {"task": kw["task"], "rule": kw["rule"].to_dict(), "task_options": kw.get("task_options") or {},
                 "freeze": list(kw.get("freeze", ())), "batch_size": kw.get("batch_size"), "label_budget": label_budget,
                 "plan": _plan_fields(config, TRAINING_PLAN_FIELDS)}
+        if label_draw:   # only then: draw 0's spec (digest) stays what it was before label draws existed
+            spec["label_draw"] = label_draw
         after = [stages.name_of(data_dir), stages.name_of(data["val"]), *([stages.name_of(init)] if init else [])]
         return stages.run(f"{s}/{name}", TRAIN_MARKER, run, spec=spec, after=after) / SELECTED
 
@@ -299,21 +308,26 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
                   for arm in PRETRAINED_ARMS}
     result: dict = {"detection": {}, "retrieval": {}, "occupancy": {}, "flow": {}}
 
-    # Detection: every variant at every label budget.
+    # Detection: every variant at every label budget; the smallest budget once per label draw, its rows the
+    # mean over the draws.
     for arm, mode in config.detector_variants:
         for budget in config.budgets_sorted:
-            name = detector_stage(arm, mode, budget)
             frozen = mode == "frozen"
-            bundle_dir = train(name, task="detector", rule=rules.detector, label_budget=budget,
-                               task_options=config.stage_options(
-                                   "detector", {"labels": None, "freeze_features": frozen}),
-                               init_bundle=pretrained.get(arm), freeze=("mapper",) if frozen else (),
-                               batch_size=min(config.batch_size or preset.train.batch_size,
-                                              config.budget_records(budget)))
-            result["detection"][f"{arm}/{mode}/{budget_name(budget)}"] = evaluate(
-                f"detection/{arm}_{mode}_L{budget_name(budget)}",
-                lambda b=bundle_dir: evaluations.detection(load_bundle(b, device), test_records, device=device),
-                reads=(bundle_dir,))
+            per_draw = []
+            for draw in range(config.draws_of(budget)):
+                name = detector_stage(arm, mode, budget, draw)
+                bundle_dir = train(name, task="detector", rule=rules.detector, label_budget=budget, label_draw=draw,
+                                   task_options=config.stage_options(
+                                       "detector", {"labels": None, "freeze_features": frozen}),
+                                   init_bundle=pretrained.get(arm), freeze=("mapper",) if frozen else (),
+                                   batch_size=min(config.batch_size or preset.train.batch_size,
+                                                  config.budget_records(budget)))
+                per_draw.append(evaluate(
+                    f"detection/{name[len('detector_'):]}",
+                    lambda b=bundle_dir: evaluations.detection(load_bundle(b, device), test_records, device=device),
+                    reads=(bundle_dir,)))
+            result["detection"][f"{arm}/{mode}/{budget_name(budget)}"] = (
+                per_draw[0] if len(per_draw) == 1 or stages.dry else evaluations.detection_over_draws(per_draw))
 
     # Retrieval per arm (random: an untrained, seeded model).
     for arm in ("random", *PRETRAINED_ARMS):

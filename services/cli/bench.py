@@ -60,6 +60,9 @@ def register(subparsers) -> None:
     p.add_argument("--test-episodes", type=_positive_int, default=None, metavar="N", help="test records")
     p.add_argument("--label-budgets", type=_budget, nargs="+", default=None, metavar="N|all",
                    help="labelled training records for the detector, e.g. 2 8 32 all")
+    p.add_argument("--label-draws", type=_positive_int, default=None, metavar="K",
+                   help="train the smallest budget's detectors on K disjoint label sets (records [d*N, (d+1)*N)) and "
+                        "report their mean (default: the preset's plan: small 4, tiny 1)")
     steps = p.add_argument_group("training length (default: each stage's stopping rule in the preset's plan)")
     for stage in STAGE_NAMES:
         steps.add_argument(f"--{stage}-steps", type=_positive_int, default=None, metavar="N",
@@ -106,6 +109,7 @@ def config_from_args(args: argparse.Namespace):
     overrides = {k: v for k, v in {
         "train_episodes": args.train_episodes, "test_episodes": args.test_episodes,
         "label_budgets": tuple(args.label_budgets) if args.label_budgets else None,
+        "label_draws": args.label_draws,
         "batch_size": args.batch_size, "task_options": args.task_options}.items() if v is not None}
     config = plan_for(args.preset, seeds=tuple(range(args.seeds)), quick=args.quick, data_seed=args.data_seed,
                       workers=args.workers, device=args.device, precision=args.precision, **overrides)

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from core.data.shards import ShardDataset
 from services.bench.report import METRIC_KEYS
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -122,6 +123,18 @@ def test_metrics_json_has_every_key(bench_run):
         assert bundle["modules"]["mapper"]["config"]["full_res"] == 4, stage
     pretrain = json.loads((out / "work" / "seed0" / "pretrain_regression" / "bundle" / "bundle.json").read_text())
     assert pretrain["provenance"]["coeff_match"] == 0.5
+    # The quick plan's two label draws at 2 labels: draw 1 trains on records 2 and 3, the row is the draws' mean.
+    train = ShardDataset(out / "work" / "data" / "train")
+    for draw, first in ((0, 0), (1, 2)):
+        stage = "detector_contrastive_finetuned_L2" + ("_draw1" if draw else "")
+        labelled = ShardDataset(out / "work" / "seed0" / stage / "labelled_data")
+        assert [labelled.key(i) for i in range(len(labelled))] == [train.key(first), train.key(first + 1)]
+    row = metrics["per_seed"]["0"]["detection"]["contrastive/finetuned/2"]
+    assert len(row["draws"]) == 2 and row["map"]["0.5"] == pytest.approx(sum(d["0.5"] for d in row["draws"]) / 2)
+    assert "draws" not in metrics["per_seed"]["0"]["detection"]["contrastive/finetuned/all"]
+    assert "| contrastive − regression (fine-tuned) |" not in (out / "report.md").read_text()  # no regression/finetuned
+    assert re.search(r"\| contrastive/finetuned \| [0-9.]+ ± [0-9.]+ \| [0-9.]+ ± [0-9.]+ \|",
+                     (out / "report.md").read_text().split("by draw")[1])
     # Every stage left its timing, and the per-seed raw results are kept.
     assert all(s >= 0 for s in metrics["stage_seconds"].values())
     assert set(metrics["per_seed"]) == {"0", "1"}

@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from services.bench.aggregate import fmt, flow_table, spread
+from services.bench.aggregate import detection_draws_table, fmt, flow_table, spread
+from services.bench.evaluations import detection_over_draws
 from services.bench.plan import BenchConfigError, plan_for, with_steps
 
 
@@ -58,6 +59,44 @@ def test_flow_table_adds_the_other_gates_rows_after_the_gated_ones():
     assert rows["contrastive, filled gate"]["moving"]["mean"] == 3.0 and rows["contrastive, no gate"]["moving"]["mean"] == 2.5
 
 
+def _det(m33: float, m50: float, detections: int) -> dict:
+    return {"map": {"0.33": m33, "0.5": m50}, "map_bev": {"0.33": m33 + 0.1, "0.5": m50 + 0.1}, "gt_boxes": 7,
+            "detections": detections, "frames": 4}
+
+
+def test_a_row_over_label_draws_is_their_mean_and_keeps_each_draw():
+    draws = [_det(0.9, 0.5, 10), _det(0.7, 0.8, 20), _det(0.8, 0.2, 30)]
+    row = detection_over_draws(draws)
+    assert math.isclose(row["map"]["0.5"], (0.5 + 0.8 + 0.2) / 3) and math.isclose(row["map"]["0.33"], 0.8)
+    assert math.isclose(row["map_bev"]["0.5"], (0.6 + 0.9 + 0.3) / 3) and row["detections"] == 20
+    assert row["draws"] == [d["map"] for d in draws] and row["gt_boxes"] == 7 and row["frames"] == 4
+
+
+def test_draws_table_spreads_each_draw_over_seeds_and_the_claims_difference():
+    def seed(c: list, g: list) -> dict:
+        return {"detection": {"contrastive/finetuned/2": {"draws": [{"0.5": v} for v in c]},
+                              "regression/finetuned/2": {"draws": [{"0.5": v} for v in g]}}}
+    per_seed = {"0": seed([0.8, 0.6], [0.7, 0.7]), "1": seed([0.9, 0.5], [0.6, 0.8])}
+    table = detection_draws_table(per_seed, [("regression", "finetuned"), ("contrastive", "finetuned")], "2", 2)
+    assert [s["values"] for s in table["contrastive/finetuned"]] == [[0.8, 0.9], [0.6, 0.5]]
+    diff = table["contrastive − regression (fine-tuned)"]
+    assert np.allclose(diff[0]["values"], [0.1, 0.3]) and np.allclose(diff[1]["values"], [-0.1, -0.3])
+    # a seed without draws (a plan of one draw) leaves the cells empty rather than failing
+    assert detection_draws_table({"0": {}}, [("random", "finetuned")], "2", 2)["random/finetuned"][1]["n"] == 0
+
+
+def test_label_draws_apply_to_the_smallest_budget_and_must_fit_the_training_records():
+    plan = plan_for("small")
+    assert plan.label_draws == 4 and plan.draws_of(2) == 4 and plan.draws_of(8) == 1 and plan.draws_of(None) == 1
+    assert plan_for("tiny").label_draws == 1 and plan_for("tiny", quick=True).label_draws == 2
+    with pytest.raises(BenchConfigError, match="label_draws 9 .* budget 8 .* 64 training records"):
+        plan_for("small", label_budgets=(8, None), label_draws=9)
+    plan_for("small", label_budgets=(8, None), label_draws=8)          # 8 × 8 = 64 records: fits exactly
+    assert plan_for("small", label_budgets=(None,)).draws_of(None) == 1  # every record labelled: one set
+    with pytest.raises(BenchConfigError, match="label_draws must be >= 1"):
+        plan_for("small", label_draws=0)
+
+
 def test_plan_rejects_bad_options():
     assert plan_for("tiny", quick=True).label_budgets == (2, None)
     with pytest.raises(BenchConfigError):
@@ -90,3 +129,25 @@ def test_precision_travels_with_the_plan_and_a_rerun_must_match_it(tmp_path):
     path.write_text(json.dumps(old))
     with pytest.raises(BenchConfigError, match="precision"):
         _check_same_plan(path, bf16)
+
+
+def test_label_draws_travel_with_the_plan_and_an_earlier_plan_means_one(tmp_path):
+    """A plan.json written before label draws existed trained one draw: the same plan as label_draws=1,
+    and another draw count is refused without --rerun-changed (which then only adds stages)."""
+    import json
+
+    from services.bench.paper import _check_same_plan
+    from services.bench.plan import BenchConfig
+
+    two = plan_for("tiny", quick=True)
+    assert BenchConfig.from_dict(json.loads(json.dumps(two.to_dict()))).label_draws == 2
+    old = plan_for("tiny", quick=True, label_draws=1).to_dict()
+    del old["label_draws"]                                    # an earlier n3dmap's plan
+    assert BenchConfig.from_dict(old).label_draws == 1
+    path = tmp_path / "work" / "plan.json"
+    path.parent.mkdir()
+    path.write_text(json.dumps(old))
+    _check_same_plan(path, plan_for("tiny", quick=True, label_draws=1))
+    path.write_text(json.dumps(old))
+    with pytest.raises(BenchConfigError, match="label_draws"):
+        _check_same_plan(path, two)

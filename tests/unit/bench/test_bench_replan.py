@@ -18,8 +18,12 @@ from services.bench.stages import StageRunner, stage_digest
 
 
 def _detectors(plan) -> set[str]:
-    return {f"detector_{arm}_{mode}_L{'all' if budget is None else budget}"
-            for arm, mode in plan.detector_variants for budget in plan.label_budgets}
+    """Draw 0 of a budget is named as before label draws existed; the smallest budget's further draws add
+    `_draw<d>`."""
+    few = min(b for b in plan.label_budgets if b is not None)
+    return {f"detector_{arm}_{mode}_L{'all' if budget is None else budget}" + (f"_draw{d}" if d else "")
+            for arm, mode in plan.detector_variants for budget in plan.label_budgets
+            for d in range(plan.label_draws if budget == few else 1)}
 
 
 @pytest.fixture
@@ -72,8 +76,24 @@ def test_a_pretraining_option_touches_everything_downstream_of_pretraining(plan,
     untouched = {"data/train", "data/test", "data/val", "seed0/egomotion", "seed0/eval/egomotion/moving_camera",
                  "seed0/eval/retrieval/random", "seed0/detector_random_finetuned_L2",
                  "seed0/detector_random_finetuned_Lall", "seed0/eval/detection/random_finetuned_L2",
-                 "seed0/eval/detection/random_finetuned_Lall"}
+                 "seed0/eval/detection/random_finetuned_Lall", "seed0/detector_random_finetuned_L2_draw1",
+                 "seed0/eval/detection/random_finetuned_L2_draw1"}
     assert changed == set(stage_digests(plan, tmp_path)) - untouched
+
+
+def test_more_label_draws_add_stages_and_keep_every_existing_one(plan, tmp_path):
+    """A benchmark run with one draw, continued with `--label-draws 2 --rerun-changed`, keeps all its stages
+    (draw 0's digests are those of before draws existed) and only adds the new draws' detectors and evaluations."""
+    one, two = replace(plan, label_draws=1), replace(plan, label_draws=2)
+    before, after = stage_digests(one, tmp_path), stage_digests(two, tmp_path)
+    assert all(after[name] == digest for name, digest in before.items())
+    added = set(after) - set(before)
+    assert added == {f"seed0/{d}" for d in _detectors(two) - _detectors(one)} | {
+        f"seed0/eval/detection/{d[len('detector_'):]}" for d in _detectors(two) - _detectors(one)}
+    assert len(added) == 2 * len(plan.detector_variants)              # draw 1: a detector + its evaluation
+    # the "changed" stages are exactly the added ones, which have no directory yet: nothing is redone
+    assert sorted(changed_stages(one, two, tmp_path)) == sorted(added)
+    assert sorted(changed_stages(two, one, tmp_path)) == sorted(added)   # fewer draws: the dropped ones go
 
 
 def test_rules_and_evaluation_settings_touch_only_their_stages(plan, tmp_path):
@@ -109,8 +129,8 @@ def test_seeds_outside_this_run_and_stages_the_new_plan_drops_are_covered(plan, 
     # a label budget dropped: its detectors and their evaluations are stages the new plan no longer has
     fewer = replace(plan, label_budgets=(None,))
     dropped = set(changed_stages(plan, fewer, tmp_path))
-    assert dropped == {f"seed{s}/{d}" for s in (0, 1) for d in _detectors(plan) if d.endswith("_L2")} | {
-        f"seed{s}/eval/detection/{d[len('detector_'):]}" for s in (0, 1) for d in _detectors(plan) if d.endswith("_L2")}
+    assert dropped == {f"seed{s}/{d}" for s in (0, 1) for d in _detectors(plan) if "_L2" in d} | {
+        f"seed{s}/eval/detection/{d[len('detector_'):]}" for s in (0, 1) for d in _detectors(plan) if "_L2" in d}
 
 
 def _downstream_slow(inputs: dict, start: set) -> set:

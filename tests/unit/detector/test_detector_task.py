@@ -161,5 +161,13 @@ def test_label_subset_holds_the_first_n_records(records, tmp_path):
     for key, value in source[0].items():
         np.testing.assert_array_equal(subset[0][key], value)
     assert labelled_subset(data, run, 1) == run / "labelled_data"    # a rerun reuses it
-    with pytest.raises(ConfigError, match="first 1 records"):
+    with pytest.raises(ConfigError, match="1 records from record 0"):
         labelled_subset(data, run, 2)
+    # a later draw: records [first, first + n) of the source, in order; a range past the end is refused
+    later = ShardDataset(labelled_subset(data, tmp_path / "run1", 1, first=1))
+    assert [later.key(i) for i in range(len(later))] == [source.key(1)]
+    np.testing.assert_array_equal(later[0]["rgb"], source[1]["rgb"])
+    with pytest.raises(ConfigError, match="from record 1"):
+        labelled_subset(data, tmp_path / "run1", 1)            # the run dir was trained on another draw
+    with pytest.raises(ConfigError, match=r"records \[1, 3\)"):
+        labelled_subset(data, tmp_path / "run2", 2, first=1)
