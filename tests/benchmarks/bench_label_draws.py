@@ -1,0 +1,128 @@
+"""How much does the choice of labelled records move the few-label detection verdict?
+
+    python tests/benchmarks/bench_label_draws.py --work REPORT_DIR/work --heldout DIR --out OUT
+        [--seeds 0 1 2] [--arms contrastive regression] [--draws 0 1 2 3 4 5 6 7] [--budget 2]
+        [--pretrain-steps N --pretrain-options JSON] [--device cpu|cuda] [--threads 1]
+
+For each seed of a `bench paper` work directory and each pretraining arm, trains the fine-tuned detector
+the way the benchmark does (its plan's stopping rule and task options, `services.bench.training.
+train_stage`) on label draw d — training records d·N … (d+1)·N − 1, `labelled_subset(first=d·N)`; draw 0
+is the benchmark's own set — with detector seed s + 100·d, and scores mAP on DIR's records (use records
+that are not the benchmark's test set). With --pretrain-steps N each arm is first pretrained here for N
+fixed steps with the plan's pretraining options updated by --pretrain-options (e.g. '{"coeff_match": 0}'
+for the paper's objectives without the matching term) instead of reading the benchmark's pretraining.
+Resumable: OUT/results.jsonl keeps every finished (seed, arm, draw); a rerun skips them. Prints one JSON
+line per detector, then per seed each arm's mAP@0.5 by draw and the contrastive − regression difference
+per draw (mean and sd over draws).
+
+Measured (session 17, the small report's work directory, 32 held-out records of data seed 7, on a lent
+H100): README "Label draws" and Status ("Why three fail").
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+from core.bundle import load_bundle
+from core.data.shards import ShardDataset
+from core.device import resolve_device
+from core.presets import get_preset
+from services.bench import evaluations
+from services.bench.plan import BenchConfig
+from services.bench.stopping import StageRule
+from services.bench.training import train_stage
+from services.training.label_subset import labelled_subset
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--work", type=Path, required=True, help="a `bench paper` run's REPORT_DIR/work")
+    p.add_argument("--heldout", type=Path, required=True, help="records to score on (not the test set)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    p.add_argument("--arms", nargs="+", choices=("random", "regression", "contrastive"),
+                   default=["contrastive", "regression"])
+    p.add_argument("--draws", type=int, nargs="+", default=list(range(8)))
+    p.add_argument("--budget", type=int, default=None, help="labelled records per draw (default: the plan's smallest)")
+    p.add_argument("--max-heldout", type=int, default=None)
+    p.add_argument("--pretrain-steps", type=int, default=0)
+    p.add_argument("--pretrain-options", type=json.loads, default={})
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="cpu")
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    device = resolve_device(args.device)
+
+    config = BenchConfig.from_dict(json.loads((args.work / "plan.json").read_text()))
+    config = dataclasses.replace(config, device=str(device))
+    budget = args.budget or config.budgets_sorted[0]
+    batch_size = config.batch_size or get_preset(config.preset).train.batch_size   # as the benchmark's detectors
+    train_dir = args.work / "data" / "train"
+    held = ShardDataset(args.heldout)
+    heldout = [held[i] for i in range(min(len(held), args.max_heldout or len(held)))]
+    val = ShardDataset(args.work / "data" / "val")
+    val_records = [val[i] for i in range(len(val))]
+    args.out.mkdir(parents=True, exist_ok=True)
+    results_path = args.out / "results.jsonl"
+    rows = [json.loads(line) for line in results_path.read_text().splitlines()] if results_path.exists() else []
+    done = {(r["seed"], r["arm"], r["draw"]) for r in rows}
+
+    def pretrained(seed: int, arm: str) -> Path | None:
+        if arm == "random":
+            return None
+        if not args.pretrain_steps:
+            return args.work / f"seed{seed}" / f"pretrain_{arm}" / "selected"
+        return train_stage(config, task="pretrain", data_dir=train_dir, run_dir=args.out / f"seed{seed}_pretrain_{arm}",
+                           rule=StageRule.fixed(args.pretrain_steps), seed=seed, heldout_records=val_records,
+                           task_options={**config.stage_options("pretrain", {"objective": arm}), **args.pretrain_options},
+                           log=lambda _: None)
+
+    for draw in args.draws:          # draws outermost: a cut-off run still has every arm of its first draws
+        for seed in args.seeds:
+            for arm in args.arms:
+                if (seed, arm, draw) in done:
+                    continue
+                started = time.time()
+                run_dir = args.out / f"seed{seed}_{arm}_d{draw}"
+                labels = labelled_subset(train_dir, run_dir, budget, first=draw * budget)
+                bundle_dir = train_stage(
+                    config, task="detector", data_dir=labels, run_dir=run_dir, rule=config.rules.detector,
+                    seed=seed + 100 * draw, heldout_records=val_records,
+                    task_options=config.stage_options("detector", {"labels": None, "freeze_features": False}),
+                    init_bundle=pretrained(seed, arm), batch_size=min(batch_size, budget),
+                    log=lambda _: None)
+                scores = evaluations.detection(load_bundle(bundle_dir, device), heldout, device=device)
+                row = {"seed": seed, "arm": arm, "draw": draw, "map": scores["map"], "detections": scores["detections"],
+                       "gt": scores["gt_boxes"], "seconds": round(time.time() - started, 1)}
+                rows.append(row)
+                with results_path.open("a") as f:
+                    f.write(json.dumps(row) + "\n")
+                print(json.dumps(row), flush=True)
+    _summary(rows)
+
+
+def _summary(rows: list[dict]) -> None:
+    """Per seed: each arm's mAP@0.5 by draw, and the contrastive − regression difference per draw."""
+    for seed in sorted({r["seed"] for r in rows}):
+        by_arm = {arm: {r["draw"]: r["map"]["0.5"] for r in rows if r["seed"] == seed and r["arm"] == arm}
+                  for arm in sorted({r["arm"] for r in rows})}
+        for arm, maps in by_arm.items():
+            print(f"seed {seed} {arm:12s} " + " ".join(f"{maps[d]:.3f}" for d in sorted(maps))
+                  + f"  mean {statistics.mean(maps.values()):.3f}")
+        if {"contrastive", "regression"} <= set(by_arm):
+            draws = sorted(set(by_arm["contrastive"]) & set(by_arm["regression"]))
+            diff = [by_arm["contrastive"][d] - by_arm["regression"][d] for d in draws]
+            sd = statistics.stdev(diff) if len(diff) > 1 else float("nan")
+            print(f"seed {seed} contrastive - regression by draw " + " ".join(f"{x:+.3f}" for x in diff)
+                  + f"  mean {statistics.mean(diff):+.3f}, sd {sd:.3f} over {len(diff)} draws")
+
+
+if __name__ == "__main__":
+    main()
