@@ -67,6 +67,11 @@ CASES = [
     _case("train-local-negative-radius-0",
           "train pretrain --data {data} --run-dir {out}/r7 --workers 0 --local-negatives 1 --local-negative-radius 0",
           "--local-negative-radius"),
+    # a later label draw: --labels-from alone means nothing; a range past the dataset's 2 records is named
+    _case("train-labels-from-without-labels", "train detector --data {data} --run-dir {out}/r8 --labels-from 1",
+          "--labels-from I needs --labels N"),
+    _case("train-labels-from-past-end", "train detector --data {data} --run-dir {out}/r9 --labels 2 --labels-from 1",
+          "records [1, 3) are not all in"),
     # jobs / bundle / bench: already one-line errors; kept so that they stay so
     _case("jobs-no-address", "jobs list", "--address"),
     _case("jobs-address-nothing", "jobs status raysubmit_x --address http://127.0.0.1:9", "http://127.0.0.1:9",
@@ -74,6 +79,8 @@ CASES = [
     _case("bundle-truncated-weights", "bundle info {truncated_bundle}", "weights.safetensors"),
     _case("bench-seeds-0", "bench paper --preset tiny --out {out}/b --seeds 0", "--seeds"),
     _case("bench-parallel-seeds-0", "bench paper --preset tiny --out {out}/b --parallel-seeds 0", "--parallel-seeds"),
+    _case("bench-label-draws-too-many", "bench paper --preset tiny --out {out}/b --label-draws 30",
+          "label_draws 30 at the smallest label budget 2"),
     # amodal boxes: a size prior is three positive lengths, or auto / none for eval moving
     _case("bridge-size-prior-two", "stream bridge --bundle {bundle} --size-prior 4 2", "--size-prior"),
     _case("bridge-size-prior-negative", "stream bridge --bundle {bundle} --size-prior 4 2 -1", "--size-prior"),

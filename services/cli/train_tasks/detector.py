@@ -1,6 +1,7 @@
 """`n3dmap train detector`: the Faster-RCNN-style 3D detector on the latent map (paper §5.1).
 
-`--labels N` gives box labels to the first N records of the dataset (by index) only; the others
+`--labels N` gives box labels to the first N records of the dataset (by index) only, `--labels-from I`
+to records I … I+N−1 instead (another label draw, as `bench paper --label-draws` trains); the others
 contribute no detection loss. The detector has no other loss, so a record without labels adds
 nothing to training: the command trains on RUN_DIR/labelled_data, a copy of the first N records
 (same keys; services.training.label_subset), rather than spending steps on masked records. (In-process callers can instead build the
@@ -38,6 +39,8 @@ def register(tasks) -> None:
                     "initialised, and stays frozen unless --finetune.")
     parser.add_argument("--labels", type=_non_negative_int, default=None, metavar="N",
                         help="box labels from the first N records of the dataset only (default: all)")
+    parser.add_argument("--labels-from", type=_non_negative_int, default=0, metavar="I",
+                        help="with --labels N: box labels from records I to I+N-1 instead (default 0)")
     parser.add_argument("--finetune", action="store_true",
                         help="train the mapper's features together with the detector "
                              "(default: --freeze-features)")
@@ -49,6 +52,9 @@ def _run(args) -> int:
     if args.finetune and args.freeze_features:
         raise CliError("train detector: --freeze-features and --finetune exclude each other")
     args.freeze_features = not args.finetune
+    if args.labels_from and args.labels is None:
+        raise CliError("train detector: --labels-from I needs --labels N (how many records from I get labels)")
     if args.labels is not None and not args.address:  # a submitted job subsets on the cluster
-        args.data = str(labelled_subset(Path(args.data), Path(args.run_dir), args.labels, log=print))
+        args.data = str(labelled_subset(Path(args.data), Path(args.run_dir), args.labels, first=args.labels_from,
+                                        log=print))
     return run_train("detector", args, {"freeze_features": args.freeze_features})
