@@ -57,16 +57,14 @@ def detection_draws_table(per_seed: dict, variants, budget: str, draws: int, iou
         found = get_path(r, "detection", f"{variant}/{budget}", "draws") or []
         return [d.get(iou) for d in found] + [None] * (draws - len(found))
 
-    table = {f"{a}/{m}": [spread(draw_maps(r, f"{a}/{m}")[d] for r in per_seed.values()) for d in range(draws)]
-             for a, m in variants}
-    pair = ("contrastive/finetuned", "regression/finetuned")
-    if all(v in table for v in pair):
-        def diff(r: dict, d: int):
-            c, g = draw_maps(r, pair[0])[d], draw_maps(r, pair[1])[d]
-            return None if c is None or g is None else c - g
-        table["contrastive − regression (fine-tuned)"] = [spread(diff(r, d) for r in per_seed.values())
-                                                          for d in range(draws)]
-    return table
+    # {variant: [each seed's mAP per draw]}, read once
+    maps = {f"{a}/{m}": [draw_maps(r, f"{a}/{m}") for r in per_seed.values()] for a, m in variants}
+    contrastive, regression = maps.get("contrastive/finetuned"), maps.get("regression/finetuned")
+    if contrastive and regression:
+        maps["contrastive − regression (fine-tuned)"] = [
+            [None if c is None or g is None else c - g for c, g in zip(cs, gs)]
+            for cs, gs in zip(contrastive, regression)]
+    return {variant: [spread(seed[d] for seed in seeds) for d in range(draws)] for variant, seeds in maps.items()}
 
 
 def retrieval_table(per_seed: dict, arms) -> dict:

@@ -136,9 +136,9 @@ class BenchConfig:
             raise BenchConfigError(f"label_draws must be >= 1, got {self.label_draws}")
         few = self.budgets_sorted[0]
         if few is not None and self.label_draws * few > self.train_episodes:
-            raise BenchConfigError(f"label_draws {self.label_draws} at the smallest label budget "
-                                   f"{'all' if few is None else few} needs {self.label_draws} disjoint sets of "
-                                   f"that many records, more than the {self.train_episodes} training records")
+            raise BenchConfigError(f"label_draws {self.label_draws} at the smallest label budget {few} needs "
+                                   f"{self.label_draws} disjoint sets of that many records, more than the "
+                                   f"{self.train_episodes} training records")
         for arm, mode in self.detector_variants:
             if arm not in ARMS or mode not in MODES:
                 raise BenchConfigError(f"detector variant ({arm!r}, {mode!r}): arm must be one of {ARMS} "
