@@ -54,6 +54,10 @@ class WorldConfig:
     sparse_row_step: int = 4                           # LiDAR-like: keep every n-th image row
     sparse_dropout: float = 0.1                        # ...and drop this fraction of the kept returns
     tile: int = 16                                     # ray-casting tile edge (pixels) for box culling
+    # camera photometrics (photometrics.py; 0 = off, the renderer's view-independent colour as is)
+    exposure_std: float = 0.0                          # std of each image's log gain (auto-exposure)
+    white_balance_std: float = 0.0                     # std of each image's per-channel log gain
+    pixel_noise_std: float = 0.0                       # per-pixel Gaussian noise, in [0, 1] colour units
     # --- textures: feature sizes in metres of the checker / stripes / noise patterns on objects
     texture_scale: tuple[float, float] = (0.3, 1.2)
     ground_noise_scale: float = 0.6
@@ -68,6 +72,12 @@ class WorldConfig:
             raise ValueError(f"moving_fraction must be in [0, 1], got {self.moving_fraction}")
         if self.dt <= 0 or self.max_depth <= 0 or self.tile < 1 or self.sparse_row_step < 1:
             raise ValueError("dt, max_depth, tile and sparse_row_step must be positive")
+        for name in ("exposure_std", "white_balance_std", "pixel_noise_std"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        t0, t1 = self.texture_scale
+        if not (0.0 < t0 <= t1):
+            raise ValueError(f"texture_scale must satisfy 0 < lo <= hi (metres), got {self.texture_scale}")
         e0, e1 = self.rig_elevation_deg
         if not (0.0 < e0 <= e1 < 90.0):
             raise ValueError(f"rig_elevation_deg must lie in (0, 90), got {self.rig_elevation_deg}")

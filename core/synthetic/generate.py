@@ -14,6 +14,7 @@ from core.geometry import boxes as gboxes
 from core.geometry import camera, se3
 from core.presets import Preset
 from core.synthetic.config import WorldConfig, default_world_config
+from core.synthetic.photometrics import apply_photometrics
 from core.synthetic.render import render
 from core.synthetic.scene import sample_scene
 from core.synthetic.sensor import add_depth_noise, sparsify_rows
@@ -33,7 +34,7 @@ def generate_record(preset: Preset, *, seed: int, num_views: int | None = None, 
     Deterministic by `seed` (same seed, same device ⇒ identical arrays). At least one object lies
     entirely inside the preset's grid (in `ref` of that step) at every step. `sparse_depth` keeps
     LiDAR-like rows only; `noise` is the std (metres) of Gaussian depth noise; `device` is where the
-    ray casting runs (e.g. "cuda").
+    ray casting runs (e.g. "cuda"); `world` overrides the preset's world (camera photometrics, textures, …).
     """
     cfg = world if world is not None else default_world_config(preset)
     T = int(num_frames if num_frames is not None else preset.num_frames)
@@ -81,6 +82,9 @@ def generate_record(preset: Preset, *, seed: int, num_views: int | None = None, 
     if sparse_depth:
         depth = sparsify_rows(depth, row_step=cfg.sparse_row_step, dropout=cfg.sparse_dropout, generator=gen)
     depth = add_depth_noise(depth, std=float(noise), generator=gen)
+    # After every other draw of `gen`, and none when off: records without photometrics stay as they were.
+    rgb = apply_photometrics(rgb, exposure_std=cfg.exposure_std, white_balance_std=cfg.white_balance_std,
+                             pixel_noise_std=cfg.pixel_noise_std, generator=gen)
 
     boxes = np.zeros((T, K, 7), np.float32)
     boxes[:, :n] = rec_vehicles.numpy()

@@ -2,7 +2,8 @@
 
     n3dmap data generate --out DIR --preset tiny --episodes 64 --seed 0 [--views V] [--frames T]
                          [--split train|val] [--moving-ego on|off|mixed] [--sparse-depth]
-                         [--noise SIGMA] [--shard-mb MB] [--overwrite] [--jobs N]
+                         [--noise SIGMA] [--exposure-jitter S] [--white-balance-jitter S]
+                         [--pixel-noise S] [--texture-scale LO HI] [--shard-mb MB] [--overwrite] [--jobs N]
     n3dmap data info DIR [--verify] [--json]
     n3dmap data preview DIR [--out FILE.png] [--rerun FILE.rrd [--points]] [--index I]
     n3dmap data import authors-npz|kitti|tum SRC --out DIR [...]
@@ -49,6 +50,15 @@ def register(subparsers) -> None:
                    help="whether the ego rig moves (mixed: odd-indexed records)")
     g.add_argument("--sparse-depth", action="store_true", help="LiDAR-like sparse depth")
     g.add_argument("--noise", type=_non_negative_float, default=0.0, help="depth noise sigma, metres")
+    g.add_argument("--exposure-jitter", type=_non_negative_float, default=0.0, metavar="S",
+                   help="std of each image's log gain (auto-exposure); default 0: off")
+    g.add_argument("--white-balance-jitter", type=_non_negative_float, default=0.0, metavar="S",
+                   help="std of each image's per-channel log gain (auto white balance); default 0: off")
+    g.add_argument("--pixel-noise", type=_non_negative_float, default=0.0, metavar="S",
+                   help="per-pixel colour noise std, in [0, 1] colour units; default 0: off")
+    g.add_argument("--texture-scale", type=_positive_float, nargs=2, default=None, metavar=("LO", "HI"),
+                   help="pattern cell sizes (metres) of the objects' textures, drawn uniformly per object "
+                        "(default: the preset's, at least one voxel)")
     g.add_argument("--shard-mb", type=_positive_float, default=256.0, help="target shard size in MB")
     g.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
     g.add_argument("--jobs", type=_positive_int, default=None,
@@ -182,10 +192,11 @@ def cmd_generate(args: argparse.Namespace) -> int:
 
     from services.cli.render_pool import RecordSpec, default_jobs, render_records
 
+    world_overrides = _world_overrides(args)
     specs = [RecordSpec(preset=preset.name, seed=episode_seed(args.seed, i), num_views=args.views,
                         num_frames=args.frames,
                         moving_ego={"on": True, "off": False, "mixed": i % 2 == 1}[args.moving_ego],
-                        sparse_depth=args.sparse_depth, noise=args.noise)
+                        sparse_depth=args.sparse_depth, noise=args.noise, world_overrides=world_overrides)
              for i in range(args.episodes)]
     T, V = args.frames or preset.num_frames, args.views or preset.num_views
     jobs = args.jobs or default_jobs(records=args.episodes,
@@ -198,6 +209,8 @@ def cmd_generate(args: argparse.Namespace) -> int:
         "moving_ego": args.moving_ego, "sparse_depth": args.sparse_depth, "noise": args.noise,
         "record_seed": f"seed*{SEED_STRIDE} + index",
     }
+    if world_overrides:  # only when set, so manifests of the default world read as before
+        generator["world"] = {name: list(v) if isinstance(v, tuple) else v for name, v in world_overrides}
     records = render_records(specs, jobs=jobs)
     try:
         with _Progress(args.episodes, f"generate {args.preset}") as progress:
@@ -209,6 +222,21 @@ def cmd_generate(args: argparse.Namespace) -> int:
         records.close()  # stops the render workers now, whether write_dataset finished or failed
     _print_written(args.out, manifest)
     return 0
+
+
+def _world_overrides(args: argparse.Namespace) -> tuple[tuple[str, object], ...]:
+    """The WorldConfig fields the options change from the preset's world, as (name, value) pairs."""
+    pairs: list[tuple[str, object]] = []
+    for name, value in (("exposure_std", args.exposure_jitter), ("white_balance_std", args.white_balance_jitter),
+                        ("pixel_noise_std", args.pixel_noise)):
+        if value > 0:
+            pairs.append((name, float(value)))
+    if args.texture_scale is not None:
+        lo, hi = args.texture_scale
+        if lo > hi:
+            raise DataError(f"--texture-scale LO HI needs LO <= HI, got {lo} {hi}")
+        pairs.append(("texture_scale", (float(lo), float(hi))))
+    return tuple(pairs)
 
 
 def _print_written(out: Path, manifest: dict) -> None:

@@ -47,16 +47,20 @@ class RecordSpec:
     moving_ego: bool = False
     sparse_depth: bool = False
     noise: float = 0.0
+    world_overrides: tuple[tuple[str, object], ...] = ()  # (WorldConfig field, value) over the preset's world
 
 
 def render_record(spec: RecordSpec) -> dict:
     """The record of `spec` (core.synthetic.generate_record on the CPU); same bytes in any process."""
     from core.presets import get_preset
     from core.synthetic import generate_record
+    from core.synthetic.config import default_world_config
 
-    return generate_record(get_preset(spec.preset), seed=spec.seed, num_views=spec.num_views,
+    preset = get_preset(spec.preset)
+    world = default_world_config(preset).with_overrides(**dict(spec.world_overrides))
+    return generate_record(preset, seed=spec.seed, num_views=spec.num_views,
                            num_frames=spec.num_frames, moving_ego=spec.moving_ego,
-                           sparse_depth=spec.sparse_depth, noise=spec.noise)
+                           sparse_depth=spec.sparse_depth, noise=spec.noise, world=world)
 
 
 def render_record_to_file(spec: RecordSpec, path: str) -> str:

@@ -43,6 +43,10 @@ CASES = [
     _case("info-bad-json", "data info {badjson}", "{badjson}/manifest.json"),
     _case("generate-episodes-0", "data generate --out {out} --preset tiny --episodes 0", "--episodes"),
     _case("generate-preset-typo", "data generate --out {out} --preset tiyn --episodes 1", "--preset"),
+    _case("generate-exposure-negative", "data generate --out {out} --preset tiny --episodes 1 --exposure-jitter -0.1",
+          "--exposure-jitter"),
+    _case("generate-texture-scale-order", "data generate --out {out} --preset tiny --episodes 1 --texture-scale 0.5 0.1",
+          "--texture-scale"),
     # stream: ranges in argparse (was: --rate 0 a ValueError traceback, --frames -3 / --count 0 exit 0);
     # a bad preset or --view and an unreachable zenoh endpoint were tracebacks
     _case("camera-rate-0", "stream camera --camera-id c --synthetic --rate 0", "--rate"),

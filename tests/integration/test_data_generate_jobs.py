@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import services.cli.main as cli_main
@@ -39,6 +40,26 @@ def test_two_jobs_write_the_same_shards_as_one(capsys, tmp_path):
     assert [(s["filename"], s["keys"], s["sha256"]) for s in one["shards"]] == \
            [(s["filename"], s["keys"], s["sha256"]) for s in two["shards"]]
     assert one == two
+
+
+def test_camera_photometrics_reach_the_workers_and_the_manifest(capsys, tmp_path):
+    from core.data.shards import ShardDataset
+
+    def generate(out: Path, jobs: int, *world: str) -> dict:
+        code = cli_main.main(["data", "generate", "--preset", "tiny", "--episodes", "2", "--seed", "3",
+                              "--out", str(out), "--jobs", str(jobs), *world])
+        assert code == 0, capsys.readouterr().err
+        return json.loads((out / "manifest.json").read_text())
+
+    options = ["--exposure-jitter", "0.3", "--pixel-noise", "0.02", "--texture-scale", "0.1", "0.3"]
+    one = generate(tmp_path / "one", 1, *options)
+    two = generate(tmp_path / "two", 2, *options)
+    plain = generate(tmp_path / "plain", 1)
+    assert one == two                                  # same bytes from worker processes
+    assert one["generator"]["world"] == {"exposure_std": 0.3, "pixel_noise_std": 0.02, "texture_scale": [0.1, 0.3]}
+    assert "world" not in plain["generator"]           # the default world's manifest reads as before
+    a, b = ShardDataset(tmp_path / "one")[0], ShardDataset(tmp_path / "plain")[0]
+    assert np.array_equal(a["depth"], b["depth"]) and not np.array_equal(a["rgb"], b["rgb"])
 
 
 def test_a_failing_record_in_a_worker_names_the_record():
