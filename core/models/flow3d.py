@@ -32,7 +32,7 @@ At small (0.5 m voxels, true motions up to 3 voxels along x and z) the step's wi
 decoders at ±1, a ±3/±1/±3 grid step (`refine_radius`) gives what ±3 at every level gives (over matching-
 trained features, seed 0, 16 test records: raw moving EPE 0.82 × zero motion both). `refine_aggregate` then
 averages each displacement's cost over a box around each voxel before the soft-argmax (`aggregate_costs`):
-trained with ±1 boxes, 0.67 × (one seed; three in the README's Status).
+trained with ±1 boxes, 0.67 × (one seed; three in docs/findings.md).
 The pyramid comes from a small learned 3D conv on the input, then average pooling, so the coarse voxels
 of level l are exactly the 2^l blocks of the grid and flow upsampling needs no offset.
 The last conv of each decoder starts at zero: an untrained module without the correlator steps predicts

@@ -16,7 +16,7 @@ line per detector, then per seed each arm's mAP@0.5 by draw and the contrastive 
 per draw (mean and sd over draws).
 
 Measured (session 17, the small report's work directory, 32 held-out records of data seed 7, on a lent
-H100): README "Label draws" and Status ("Why three fail").
+H100): README "Label draws" and docs/findings.md ("Why three fail").
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ moves, so only ref0_T_ref1 changes; offsetting world_T_ref1 alone cancels out an
 Prints AP3D at IoU 0.5 / 0.25 and the box count per row, then one JSON line with every figure.
 
 Measured (session 16; 32 held-out small records of data seed 7, 16 static- and 16 moving-camera pairs,
-seed 0's bench flow bundle): README Status, "How this report's verdicts moved".
+seed 0's bench flow bundle): docs/findings.md, "How this report's verdicts moved".
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ def register(tasks) -> None:
     parser.add_argument("--smooth-weight", type=float, default=0.05)
     parser.add_argument("--radius", type=non_negative_int, nargs=3, default=None, metavar=("RX", "RY", "RZ"),
                         help="cost-volume window in voxels (x, y, z) at every level (default 1 1 1; 2 1 2 "
-                             "measured better over matching-trained features, README: Status)")
+                             "measured better over matching-trained features, docs/findings.md)")
     parser.add_argument("--refine-radius", type=non_negative_int, nargs=3, default=None, metavar=("RX", "RY", "RZ"),
                         help="window of the last, full-grid correlator step (default: --radius's)")
     parser.add_argument("--cost-channels", type=non_negative_int, default=None, metavar="K",
@@ -37,7 +37,7 @@ def register(tasks) -> None:
                         help="share of the synthetic rigid steps whose moved input is the frame re-unprojected with "
                              "the motion (large, small, and a jitter at the egomotion module's error scale) "
                              "instead of resampled, so that a slightly wrong stabilising pose is not read as "
-                             "motion (default 0; README: Status, 'Which voxels move')")
+                             "motion (default 0; docs/findings.md, 'Which voxels move')")
     parser.set_defaults(func=_run)
 
 

@@ -20,7 +20,7 @@ def register(tasks) -> None:
                         help="weight of the local matching term (0, the default: off; the paper has none): "
                              "an object-sized block of one view's input moves and each moved voxel's feature "
                              "must find itself again among its new place's neighbours, so that 3D flow over "
-                             "the maps can follow objects (README: Status, flow over features)")
+                             "the maps can follow objects (docs/findings.md, flow over features)")
     parser.add_argument("--local-negatives", type=non_negative_float, default=0.0, metavar="W",
                         help="weight of local negatives in the 3D contrastive loss (0, the default: off, the "
                              "paper's batch-wide negatives only): each sampled voxel's prediction must also differ "
@@ -29,11 +29,11 @@ def register(tasks) -> None:
                         help="neighbours of --local-negatives within ±R voxels per axis (default 2)")
     parser.add_argument("--occupancy-weight", type=non_negative_float, default=None, metavar="W",
                         help="weight of the occupancy loss (default 1); 3 measured to keep the occupancy head "
-                             "with --match-weight 1 (README: Status, occupancy)")
+                             "with --match-weight 1 (docs/findings.md, occupancy)")
     parser.add_argument("--encoder-full-res", type=non_negative_int, default=0, metavar="N",
                         help="channels of the 3D encoder's full-resolution branch (0, the default: the paper's "
                              "layers); with --match-weight it makes features follow objects moved 1-3 voxels "
-                             "(README: Status). Later tasks started with --init take it from the bundle")
+                             "(docs/findings.md). Later tasks started with --init take it from the bundle")
     parser.set_defaults(func=_run)
 
 
