@@ -15,18 +15,24 @@ from core.presets import get_preset
 from core.data.seeds import SEED_STRIDE, episode_seed
 
 
-def generate_split(out_dir: Path, *, preset: str, episodes: int, seed: int, split: str) -> dict:
-    """Write `episodes` synthetic records (moving ego on odd indices) to `out_dir`; returns the manifest."""
-    from core.synthetic import generate_record
+def generate_split(out_dir: Path, *, preset: str, episodes: int, seed: int, split: str,
+                   world: dict | None = None) -> dict:
+    """Write `episodes` synthetic records (moving ego on odd indices) to `out_dir`; returns the manifest.
+    `world`: WorldConfig fields changed from the preset's world (lists for tuples, as in JSON)."""
+    from core.synthetic import default_world_config, generate_record
 
     p = get_preset(preset)
+    overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in (world or {}).items()}
+    world_config = default_world_config(p).with_overrides(**overrides)
 
     def records():
         for i in range(episodes):
-            yield generate_record(p, seed=episode_seed(seed, i), moving_ego=i % 2 == 1)
+            yield generate_record(p, seed=episode_seed(seed, i), moving_ego=i % 2 == 1, world=world_config)
 
     generator = {"source": "synthetic", "episodes": episodes, "num_views": p.num_views,
                  "num_frames": p.num_frames, "moving_ego": "mixed", "sparse_depth": False, "noise": 0.0,
                  "record_seed": f"seed*{SEED_STRIDE} + index"}
+    if world:   # as `n3dmap data generate` writes it
+        generator["world"] = dict(world)
     return write_dataset(out_dir, records(), split=split, preset_name=p.name, grid=p.grid.to_dict(),
                          generator=generator, seed=seed, overwrite=True)

@@ -201,6 +201,7 @@ def _check_same_plan(path: Path, config: BenchConfig, *, rerun_changed: bool = F
         earlier.setdefault("precision", "fp32")  # plans written before the option trained in fp32
         earlier.setdefault("task_options", {})  # plans written before the option ran the tasks' defaults
         earlier.setdefault("label_draws", 1)     # plans written before label draws trained one
+        earlier.setdefault("world", {})          # plans written before the field: the preset's world
         if earlier != current:
             changed = sorted(k for k in set(earlier) | set(current) if earlier.get(k) != current.get(k))
             if not rerun_changed:
@@ -225,9 +226,14 @@ def _load_records(data_dir: Path) -> list[dict]:
 
 def _data_specs(config: BenchConfig) -> dict[str, dict]:
     """{"train" | "test" | "val": the arguments of services.bench.data.generate_split} (also each stage's spec)."""
-    return {"train": dict(preset=config.preset, episodes=config.train_episodes, seed=config.data_seed, split="train"),
-            "test": dict(preset=config.preset, episodes=config.test_episodes, seed=config.data_seed + 1, split="val"),
-            "val": dict(preset=config.preset, episodes=config.val_episodes, seed=config.data_seed + 2, split="val")}
+    # `world` only when set: the data stages' specs, so their digests, stay those of plans before the field.
+    world = {"world": dict(config.world)} if config.world else {}
+    return {"train": dict(preset=config.preset, episodes=config.train_episodes, seed=config.data_seed, split="train",
+                          **world),
+            "test": dict(preset=config.preset, episodes=config.test_episodes, seed=config.data_seed + 1, split="val",
+                         **world),
+            "val": dict(preset=config.preset, episodes=config.val_episodes, seed=config.data_seed + 2, split="val",
+                        **world)}
 
 
 def _data_stages(stages: StageRunner, config: BenchConfig) -> dict:

@@ -22,7 +22,10 @@ single fields (`dataclasses.replace`). The plan fixes, for the whole benchmark:
   defaults, for running the benchmark with a recipe other than the defaults (e.g. pretraining's matching
   term and a wider flow window): "mapper" goes to every stage that builds a mapper (pretraining, occupancy,
   detector, flow; e.g. `encoder_full_res`, which they must all agree on), the others to their stages. The options that
-  define the benchmark's arms (PROTOCOL_OPTIONS) cannot be set this way.
+  define the benchmark's arms (PROTOCOL_OPTIONS) cannot be set this way;
+- `world`: fields of the synthetic world (core.synthetic.config.WorldConfig) changed from the preset's for
+  all three datasets, e.g. camera photometrics `{"exposure_std": 0.3, "pixel_noise_std": 0.03}` (default
+  none: the preset's world, and a plan without the field reads as before).
 
 `quick=True` is the test profile: a handful of records and 2 fixed steps per stage, so the whole
 pipeline runs in well under a minute on a 2-core CPU (numbers are then meaningless, only complete, and
@@ -116,6 +119,7 @@ class BenchConfig:
     flow2d_min_pixels: int = 20                # 2.5D baseline: smaller 2D clusters are dropped
     quick: bool = False
     task_options: dict = field(default_factory=dict)  # {kind in TASK_OPTION_KINDS: {option: value}}
+    world: dict = field(default_factory=dict)  # {WorldConfig field: value} over the preset's synthetic world
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "seeds", tuple(int(s) for s in self.seeds))
@@ -160,6 +164,24 @@ class BenchConfig:
             if fixed:
                 raise BenchConfigError(f"task_options[{kind!r}] sets {fixed}: the benchmark sets those itself "
                                        "(they define its arms)")
+        self.world_config()  # refuses unknown fields and bad values now, not at the data stage
+
+    def world_config(self):
+        """The synthetic world of the plan's datasets: the preset's WorldConfig with `world` applied."""
+        from core.presets import get_preset
+        from core.synthetic.config import WorldConfig, default_world_config
+
+        if not isinstance(self.world, dict):
+            raise BenchConfigError(f"world must map WorldConfig fields to values, got {self.world!r}")
+        known = {f.name for f in fields(WorldConfig)}
+        unknown = sorted(set(self.world) - known)
+        if unknown:
+            raise BenchConfigError(f"world: unknown field(s) {unknown}; WorldConfig has {sorted(known)}")
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in self.world.items()}
+        try:
+            return default_world_config(get_preset(self.preset)).with_overrides(**values)
+        except (TypeError, ValueError) as e:
+            raise BenchConfigError(f"world: {e}") from None
 
     def stage_options(self, kind: str, protocol: dict) -> dict:
         """Task options of a stage of `kind` ("pretrain", "occupancy", "detector", "flow_features", "flow_volume"):
@@ -195,6 +217,7 @@ class BenchConfig:
         d["rules"] = StageRules.from_dict(d["rules"])
         d.setdefault("task_options", {})  # plans written before the field
         d.setdefault("label_draws", 1)     # plans written before label draws trained one
+        d.setdefault("world", {})          # plans written before the field: the preset's world
         d["label_budgets"] = tuple(None if b == "all" else int(b) for b in d["label_budgets"])
         d["detector_variants"] = tuple(tuple(v) for v in d["detector_variants"])
         d["seeds"] = tuple(d["seeds"])

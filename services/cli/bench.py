@@ -76,10 +76,15 @@ def register(subparsers) -> None:
                    help="every training stage's `n3dmap train --precision` (default fp32; see its help)")
     p.add_argument("--threads", type=_positive_int, default=None,
                    help="torch threads per process instead of the plan's share of the CPUs (may oversubscribe)")
-    p.add_argument("--task-options", type=_task_options, default=None, metavar="JSON",
+    p.add_argument("--task-options", type=_json_object, default=None, metavar="JSON",
                    help='extra task options per kind of stage, e.g. \'{"mapper": {"encoder_full_res": 16}, '
                         '"pretrain": {"coeff_match": 1.0}, "flow_features": {"refine_radius": [3, 1, 3]}}\' '
                         '(kinds: mapper, pretrain, occupancy, detector, flow_features, flow_volume; default: none)')
+    p.add_argument("--world", type=_json_object, default=None, metavar="JSON",
+                   help='synthetic world fields changed for all three datasets, e.g. camera photometrics '
+                        '\'{"exposure_std": 0.3, "white_balance_std": 0.1, "pixel_noise_std": 0.03}\' or '
+                        '\'{"texture_scale": [0.1, 0.4]}\' (core.synthetic.config.WorldConfig; default: the '
+                        "preset's world)")
     p.add_argument("--rerun-changed", action="store_true",
                    help="REPORT_DIR may hold a benchmark of another plan: redo only the stages the change "
                         "touches (their settings or inputs differ) and keep the rest; without it a changed "
@@ -92,14 +97,14 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _task_options(text: str) -> dict:
-    """--task-options: a JSON object (checked further by BenchConfig)."""
+def _json_object(text: str) -> dict:
+    """--task-options / --world: a JSON object (checked further by BenchConfig)."""
     try:
         value = json.loads(text)
     except json.JSONDecodeError as e:
         raise argparse.ArgumentTypeError(f"not JSON ({e.msg} at character {e.pos})") from None
     if not isinstance(value, dict):
-        raise argparse.ArgumentTypeError("must be a JSON object mapping a stage kind to task options")
+        raise argparse.ArgumentTypeError("must be a JSON object")
     return value
 
 
@@ -110,7 +115,8 @@ def config_from_args(args: argparse.Namespace):
         "train_episodes": args.train_episodes, "test_episodes": args.test_episodes,
         "label_budgets": tuple(args.label_budgets) if args.label_budgets else None,
         "label_draws": args.label_draws,
-        "batch_size": args.batch_size, "task_options": args.task_options}.items() if v is not None}
+        "batch_size": args.batch_size, "task_options": args.task_options, "world": args.world}.items()
+        if v is not None}
     config = plan_for(args.preset, seeds=tuple(range(args.seeds)), quick=args.quick, data_seed=args.data_seed,
                       workers=args.workers, device=args.device, precision=args.precision, **overrides)
     steps = {s: getattr(args, f"{s}_steps") for s in STAGE_NAMES}
