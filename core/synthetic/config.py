@@ -9,7 +9,7 @@ Units: metres, radians, seconds.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 from core.presets import Preset
 
@@ -73,11 +73,13 @@ class WorldConfig:
         if self.dt <= 0 or self.max_depth <= 0 or self.tile < 1 or self.sparse_row_step < 1:
             raise ValueError("dt, max_depth, tile and sparse_row_step must be positive")
         for name in ("exposure_std", "white_balance_std", "pixel_noise_std"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        t0, t1 = self.texture_scale
-        if not (0.0 < t0 <= t1):
-            raise ValueError(f"texture_scale must satisfy 0 < lo <= hi (metres), got {self.texture_scale}")
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+                raise ValueError(f"{name} must be a number >= 0, got {value!r}")
+        scale = self.texture_scale
+        if (not isinstance(scale, tuple) or len(scale) != 2 or not all(isinstance(v, (int, float)) for v in scale)
+                or not 0.0 < scale[0] <= scale[1]):
+            raise ValueError(f"texture_scale must be (lo, hi) metres with 0 < lo <= hi, got {scale!r}")
         e0, e1 = self.rig_elevation_deg
         if not (0.0 < e0 <= e1 < 90.0):
             raise ValueError(f"rig_elevation_deg must lie in (0, 90), got {self.rig_elevation_deg}")
@@ -88,6 +90,17 @@ class WorldConfig:
 
     def with_overrides(self, **kwargs) -> "WorldConfig":
         return replace(self, **kwargs)
+
+
+def world_with(preset: Preset, overrides: dict) -> WorldConfig:
+    """The preset's world with `overrides` ({WorldConfig field: value}, lists for tuples as JSON gives them)
+    applied; an unknown field or a bad value is a ValueError naming it."""
+    known = {f.name for f in fields(WorldConfig)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise ValueError(f"unknown WorldConfig field(s) {unknown}; known: {sorted(known)}")
+    values = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
+    return default_world_config(preset).with_overrides(**values)
 
 
 def default_world_config(preset: Preset) -> WorldConfig:

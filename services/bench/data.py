@@ -19,11 +19,11 @@ def generate_split(out_dir: Path, *, preset: str, episodes: int, seed: int, spli
                    world: dict | None = None) -> dict:
     """Write `episodes` synthetic records (moving ego on odd indices) to `out_dir`; returns the manifest.
     `world`: WorldConfig fields changed from the preset's world (lists for tuples, as in JSON)."""
-    from core.synthetic import default_world_config, generate_record
+    from core.synthetic import generate_record
+    from core.synthetic.config import world_with
 
     p = get_preset(preset)
-    overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in (world or {}).items()}
-    world_config = default_world_config(p).with_overrides(**overrides)
+    world_config = world_with(p, world or {})
 
     def records():
         for i in range(episodes):

@@ -169,18 +169,13 @@ class BenchConfig:
     def world_config(self):
         """The synthetic world of the plan's datasets: the preset's WorldConfig with `world` applied."""
         from core.presets import get_preset
-        from core.synthetic.config import WorldConfig, default_world_config
+        from core.synthetic.config import world_with
 
         if not isinstance(self.world, dict):
             raise BenchConfigError(f"world must map WorldConfig fields to values, got {self.world!r}")
-        known = {f.name for f in fields(WorldConfig)}
-        unknown = sorted(set(self.world) - known)
-        if unknown:
-            raise BenchConfigError(f"world: unknown field(s) {unknown}; WorldConfig has {sorted(known)}")
-        values = {k: tuple(v) if isinstance(v, list) else v for k, v in self.world.items()}
         try:
-            return default_world_config(get_preset(self.preset)).with_overrides(**values)
-        except (TypeError, ValueError) as e:
+            return world_with(get_preset(self.preset), self.world)
+        except ValueError as e:
             raise BenchConfigError(f"world: {e}") from None
 
     def stage_options(self, kind: str, protocol: dict) -> dict:

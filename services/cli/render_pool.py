@@ -54,10 +54,10 @@ def render_record(spec: RecordSpec) -> dict:
     """The record of `spec` (core.synthetic.generate_record on the CPU); same bytes in any process."""
     from core.presets import get_preset
     from core.synthetic import generate_record
-    from core.synthetic.config import default_world_config
+    from core.synthetic.config import world_with
 
     preset = get_preset(spec.preset)
-    world = default_world_config(preset).with_overrides(**dict(spec.world_overrides))
+    world = world_with(preset, dict(spec.world_overrides))
     return generate_record(preset, seed=spec.seed, num_views=spec.num_views,
                            num_frames=spec.num_frames, moving_ego=spec.moving_ego,
                            sparse_depth=spec.sparse_depth, noise=spec.noise, world=world)

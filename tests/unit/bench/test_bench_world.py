@@ -27,9 +27,11 @@ def test_world_round_trips_and_old_plans_read_as_the_presets_world():
 
 
 @pytest.mark.parametrize("world, message", [
-    ({"exposure": 0.3}, r"unknown field\(s\) \['exposure'\]"),
-    ({"pixel_noise_std": -1.0}, "pixel_noise_std must be >= 0"),
+    ({"exposure": 0.3}, r"unknown WorldConfig field\(s\) \['exposure'\]"),
+    ({"pixel_noise_std": -1.0}, "pixel_noise_std must be a number >= 0"),
+    ({"exposure_std": "high"}, "exposure_std must be a number"),
     ({"texture_scale": [0.5, 0.1]}, "texture_scale"),
+    ({"texture_scale": [0.5]}, "texture_scale"),
 ])
 def test_bad_worlds_are_refused_by_name(world, message):
     with pytest.raises(BenchConfigError, match=message):
@@ -77,4 +79,4 @@ def test_cli_world_reaches_the_plan_and_bad_input_names_it(tmp_path, monkeypatch
         main(base + ["--world", "[1]"])
     assert stop.value.code == 2 and "--world" in capsys.readouterr().err
     assert main(base + ["--world", '{"exposure": 1}']) != 0  # a BenchConfigError: one line, no traceback
-    assert "unknown field(s) ['exposure']" in capsys.readouterr().err
+    assert "unknown WorldConfig field(s) ['exposure']" in capsys.readouterr().err
