@@ -210,7 +210,7 @@ def cmd_generate(args: argparse.Namespace) -> int:
         "record_seed": f"seed*{SEED_STRIDE} + index",
     }
     if world_overrides:  # only when set, so manifests of the default world read as before
-        generator["world"] = {name: list(v) if isinstance(v, tuple) else v for name, v in world_overrides}
+        generator["world"] = dict(world_overrides)  # tuples are written as JSON lists
     records = render_records(specs, jobs=jobs)
     try:
         with _Progress(args.episodes, f"generate {args.preset}") as progress:
@@ -230,12 +230,12 @@ def _world_overrides(args: argparse.Namespace) -> tuple[tuple[str, object], ...]
     for name, value in (("exposure_std", args.exposure_jitter), ("white_balance_std", args.white_balance_jitter),
                         ("pixel_noise_std", args.pixel_noise)):
         if value > 0:
-            pairs.append((name, float(value)))
+            pairs.append((name, value))
     if args.texture_scale is not None:
         lo, hi = args.texture_scale
         if lo > hi:
             raise DataError(f"--texture-scale LO HI needs LO <= HI, got {lo} {hi}")
-        pairs.append(("texture_scale", (float(lo), float(hi))))
+        pairs.append(("texture_scale", (lo, hi)))
     return tuple(pairs)
 
 
