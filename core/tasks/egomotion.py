@@ -9,7 +9,7 @@ features and confidences it aligns; the estimate it starts from is detached, as 
 
 The module is built with splatted input occupancy and the sub-voxel Gauss-Newton stage
 (`input_occupancy="splat"`, `refine=True`, core.models.egomotion doc): measured at small, 7-9 × ICP's
-errors without them, 0.95-1.21 × with them (README "Egomotion"). `refine=False, input_occupancy="binary"`
+errors without them, 0.95-1.21 × with them (docs/findings.md, "Egomotion is on par with ICP"). `refine=False, input_occupancy="binary"`
 builds the module as before.
 
 Augmentation (on by default; needed when the data's camera does not move): the query frame is lifted

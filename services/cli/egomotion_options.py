@@ -8,7 +8,7 @@ import argparse
 
 def add_egomotion_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--egomotion-fine", action=argparse.BooleanOptionalAction, default=True,
-                        help="egomotion: run the module's last alignment stage on a 2x finer grid (default; README "
-                             "\"Egomotion\": 0.5x ICP's rotation error on held-out pairs instead of 1.2x). "
+                        help="egomotion: run the module's last alignment stage on a 2x finer grid (default; docs/findings.md, "
+                             "'Egomotion is on par with ICP': 0.5x ICP's rotation error on held-out pairs instead of 1.2x). "
                              "--no-egomotion-fine skips it: ~90 ms less per pair at the small preset on one "
                              "thread, which a stream at 10 Hz may need")

@@ -37,7 +37,7 @@ def register(tasks) -> None:
                         help="share of the synthetic rigid steps whose moved input is the frame re-unprojected with "
                              "the motion (large, small, and a jitter at the egomotion module's error scale) "
                              "instead of resampled, so that a slightly wrong stabilising pose is not read as "
-                             "motion (default 0; docs/findings.md, 'Which voxels move')")
+                             "motion (default 0; docs/findings.md, 'How this report\'s verdicts moved')")
     parser.set_defaults(func=_run)
 
 
