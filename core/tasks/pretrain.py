@@ -30,6 +30,7 @@ from core.geometry import se3
 from core.geometry.camera import depth_to_points, scale_intrinsics
 from core.geometry.freespace import free_space
 from core.geometry.grid import GridConfig
+from core.geometry.shift import shift_voxels
 from core.losses.contrastive import ContrastiveConfig, view_contrastive_loss
 from core.losses.dense import dense_l2
 from core.losses.local_matching import local_matching_loss
@@ -79,6 +80,12 @@ class PretrainConfig:
     # paper's): weight, neighbour radius in voxels.
     coeff_local_negatives: float = 0.0
     local_negative_radius: int = 2
+    # 3D positives across grid placements (contrastive only; 0 = off, the paper's aligned maps): the target
+    # view's volume is lifted into a grid moved by a random whole-voxel offset within ±N per axis, and its
+    # features are moved back before the 3D contrastive terms. Why: with both maps on one grid, features
+    # that change only every 8 voxels (the encoder's coarse path) satisfy the loss, and they do not follow
+    # content moved by 1-3 voxels (tests/benchmarks/bench_flow_features.py, the scene-shift test).
+    shift_positives: int = 0
     seed: int | None = None        # view selection / sampling RNG; None uses torch's global RNG
 
     def __post_init__(self) -> None:
@@ -88,6 +95,10 @@ class PretrainConfig:
             raise ValueError(f"render_scale must be 0.5 or 1.0, got {self.render_scale}")
         if self.coeff_local_negatives > 0 and self.objective != "contrastive":
             raise ValueError("coeff_local_negatives needs objective='contrastive' (regression has no negatives)")
+        if self.shift_positives < 0:
+            raise ValueError(f"shift_positives must be >= 0 voxels, got {self.shift_positives}")
+        if self.shift_positives > 0 and self.objective != "contrastive":
+            raise ValueError("shift_positives needs objective='contrastive' (regression has no 3D positives)")
         if self.local_negative_radius < 1:
             raise ValueError(f"local_negative_radius must be >= 1 voxel, got {self.local_negative_radius}")
 
@@ -131,6 +142,13 @@ class PretrainTask(nn.Module):
     def _randint(self, n: int) -> int:
         return int(torch.randint(n, (1,), generator=self._generator).item())
 
+    def _positive_offset(self) -> tuple[int, int, int]:
+        """(dx, dy, dz) whole voxels, each uniform in ±shift_positives; (0, 0, 0) when off (no draw)."""
+        s = self.cfg.shift_positives
+        if s == 0 or self.cfg.objective != "contrastive":
+            return (0, 0, 0)
+        return tuple(self._randint(2 * s + 1) - s for _ in range(3))
+
     def forward(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """batch: `core.data.batch.records_to_batch` output (B×T×V views, V ≥ 2) -> loss + metrics."""
         rgb_all = batch["rgb"]  # B×T×V×3×H×W
@@ -145,8 +163,12 @@ class PretrainTask(nn.Module):
 
         # encode_views in two steps: the matching term below reuses the target's lifted volume
         volume, in_view = self.mapper.lift_views(rgb, depth, pix_T_cam, cam_T_ref)  # B×V×4×Z×Y×X, B×V×1×Z×Y×X
+        occupied = volume[:, :, :1]                                     # B×V×1×Z×Y×X (labels: the unshifted grid)
+        offset = self._positive_offset()
+        if offset != (0, 0, 0):  # the target view lifted into the moved grid (see PretrainConfig.shift_positives)
+            volume = torch.cat([volume[:, :target], shift_voxels(volume[:, target], offset)[:, None],
+                                volume[:, target + 1:]], dim=1)         # B×V×4×Z×Y×X
         feats = self.mapper.encode_volumes(volume)                     # B×V×F×Z×Y×X
-        occupied = volume[:, :, :1]                                     # B×V×1×Z×Y×X
         top3d = masked_average(feats[:, inputs], in_view[:, inputs])  # B×F×Z×Y×X
         free = self._free_space(depth, pix_T_cam, cam_T_ref)         # B×V×1×Z×Y×X
 
@@ -165,6 +187,10 @@ class PretrainTask(nn.Module):
         if self.cfg.objective == "contrastive":
             bottom3d = feats[:, target]                                # B×F×Z×Y×X
             valid3d = torch.maximum(occupied[:, target], free[:, target])  # B×1×Z×Y×X
+            if offset != (0, 0, 0):  # back onto the unshifted grid; voxels whose match left the grid are invalid
+                back = tuple(-o for o in offset)
+                bottom3d = shift_voxels(bottom3d, back)
+                valid3d = valid3d * shift_voxels(torch.ones_like(valid3d), back)
             bottom2d = self.net2d(rgb_target)                          # B×E×Hr×Wr
             valid2d = self._valid_pixels(depth[:, target], pix_target, cam_target, (Hr, Wr))
             out["loss_3d"] = view_contrastive_loss(top3d, bottom3d, valid3d, self.cfg.contrastive, self._generator)

@@ -27,6 +27,12 @@ def register(tasks) -> None:
                              "from the observed feature of a random neighbour (contrastive only; README: Training)")
     parser.add_argument("--local-negative-radius", type=non_negative_int, default=2, metavar="R",
                         help="neighbours of --local-negatives within ±R voxels per axis (default 2)")
+    parser.add_argument("--shift-positives", type=non_negative_int, default=0, metavar="N",
+                        help="3D contrastive positives across grid placements (0, the default: off, the paper's "
+                             "aligned maps): the target view is lifted into a grid moved by a random whole-voxel "
+                             "offset within ±N per axis and its features moved back before the loss, so that "
+                             "features must follow content moved by less than the encoder's stride (contrastive "
+                             "only; README: Training)")
     parser.add_argument("--occupancy-weight", type=non_negative_float, default=None, metavar="W",
                         help="weight of the occupancy loss (default 1); 3 measured to keep the occupancy head "
                              "with --match-weight 1 (docs/findings.md, occupancy)")
@@ -48,6 +54,10 @@ def _run(args) -> int:
             raise CliError(f"--local-negative-radius must be >= 1 voxel, got {args.local_negative_radius}")
         options["coeff_local_negatives"] = args.local_negatives
         options["local_negative_radius"] = args.local_negative_radius
+    if args.shift_positives > 0:
+        if args.objective != "contrastive":
+            raise CliError("--shift-positives needs --objective contrastive (view regression has no 3D positives)")
+        options["shift_positives"] = args.shift_positives
     if args.occupancy_weight is not None:
         options["coeff_occ"] = args.occupancy_weight
     if args.encoder_full_res > 0:

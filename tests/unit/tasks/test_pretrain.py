@@ -6,6 +6,7 @@ import torch
 
 from core.data.batch import records_to_batch
 from core.errors import DataError, ShapeError
+from core.geometry.shift import shift_voxels
 from core.presets import TINY, CameraConfig, TrainDefaults
 from core.synthetic import generate_record
 from core.tasks import build_task
@@ -98,3 +99,48 @@ def test_local_matching_term_trains_the_encoder(records, objective):
     plain_out["loss"].backward()
     # same views and samples (same seed), so the gradients differ by the matching term's only
     assert any(not torch.allclose(a, p.grad) for a, p in zip(grads_with, plain.mapper.encoder.parameters()))
+
+
+def test_shift_positives_is_validated():
+    with pytest.raises(ValueError, match="shift_positives needs objective='contrastive'"):
+        build_task("pretrain", FAST, objective="regression", shift_positives=2)
+    with pytest.raises(ValueError, match="shift_positives must be >= 0"):
+        build_task("pretrain", FAST, objective="contrastive", shift_positives=-1)
+
+
+def test_shift_positives_realigns_the_target_features(records, monkeypatch):
+    """With a pointwise encoder (exactly shift-equivariant), the target view lifted into a moved grid and its
+    features moved back are the aligned step's bottom-up map wherever the match stayed inside the grid, and
+    only there are the 3D positives valid (captured at the dense L2 term, which sees the same maps as the
+    contrastive one)."""
+    import core.tasks.pretrain as pretrain_module
+    seen = []
+    monkeypatch.setattr(pretrain_module, "dense_l2",
+                        lambda top, bottom, valid: seen.append((top, bottom, valid)) or (top - bottom).square().mean())
+
+    def bottom_up(offset):
+        task = build_task("pretrain", FAST, objective="contrastive", seed=0, shift_positives=2)
+        torch.manual_seed(0)
+        task.mapper.encoder = torch.nn.Conv3d(4, task.cfg.feature_dim, 1, bias=False)
+        task._positive_offset = lambda: offset
+        task(records_to_batch(records))
+        top, bottom, valid = seen[-2]  # the 3D term (the 2D one follows)
+        return top, bottom, valid
+
+    top0, bottom0, valid0 = bottom_up((0, 0, 0))
+    top1, bottom1, valid1 = bottom_up((2, -1, 1))
+    inside = torch.zeros_like(valid0)
+    inside[..., :-1, 1:, :-2] = 1  # p + (dx, dy, dz) = p + (2, -1, 1) inside the grid
+    assert torch.equal(top1, top0)
+    assert torch.equal(valid1, valid0 * inside) and int(valid1.sum()) > 0
+    assert torch.allclose(bottom1 * inside, bottom0 * inside, atol=1e-6)
+    assert not torch.allclose(bottom0 * inside, shift_voxels(bottom0, (2, -1, 1)) * inside, atol=1e-3)
+
+
+def test_shift_positives_off_draws_nothing(records):
+    """shift_positives=0 leaves the step as it was: same losses from the same seed."""
+    a = build_task("pretrain", FAST, objective="contrastive", seed=3)
+    b = build_task("pretrain", FAST, objective="contrastive", seed=3, shift_positives=0)
+    b.load_state_dict(a.state_dict())
+    out_a, out_b = a(records_to_batch(records)), b(records_to_batch(records))
+    assert float(out_a["loss"]) == float(out_b["loss"])

@@ -109,6 +109,9 @@ def test_match_weight_reaches_the_task_options_and_a_negative_one_is_refused(tmp
     seen.clear()
     assert main(base + ["--local-negatives", "1", "--local-negative-radius", "3"]) == 0
     assert seen == {"objective": "contrastive", "coeff_local_negatives": 1.0, "local_negative_radius": 3}
+    seen.clear()
+    assert main(base + ["--shift-positives", "3"]) == 0
+    assert seen == {"objective": "contrastive", "shift_positives": 3}
     with pytest.raises(SystemExit) as stop:
         main(base + ["--match-weight", "-1"])
     assert stop.value.code == 2 and "--match-weight" in capsys.readouterr().err
