@@ -58,6 +58,9 @@ DEFAULT_VARIANTS: tuple[tuple[str, str], ...] = (
 TASK_OPTION_KINDS = ("mapper", "pretrain", "occupancy", "detector", "flow_features", "flow_volume")
 # Options the benchmark sets itself to define its arms and protocol.
 PROTOCOL_OPTIONS = ("objective", "inputs", "labels", "freeze_features")
+# Pretraining options only the contrastive objective has (PretrainConfig refuses them for regression). Every
+# arm gets the same options, so the benchmark refuses them rather than fail at the regression arm's stage.
+CONTRASTIVE_ONLY_OPTIONS = ("coeff_local_negatives", "shift_positives")
 
 
 class BenchConfigError(N3dmapError):
@@ -164,6 +167,10 @@ class BenchConfig:
             if fixed:
                 raise BenchConfigError(f"task_options[{kind!r}] sets {fixed}: the benchmark sets those itself "
                                        "(they define its arms)")
+            one_arm = sorted(k for k in CONTRASTIVE_ONLY_OPTIONS if options.get(k))
+            if one_arm and kind in ("mapper", "pretrain"):
+                raise BenchConfigError(f"task_options[{kind!r}] sets {one_arm}: contrastive-only pretraining options; "
+                                       "every arm gets the same options (the claims compare the objectives)")
         self.world_config()  # refuses unknown fields and bad values now, not at the data stage
 
     def world_config(self):

@@ -36,6 +36,8 @@ def test_task_options_round_trip_and_old_plans_read_as_none():
     ({"pretrain": [1]}, "must be an object"),
     ({"pretrain": {"objective": "regression"}}, "'objective'"),
     ({"flow_features": {"inputs": "volume"}}, "'inputs'"),
+    ({"pretrain": {"shift_positives": 3}}, r"\['shift_positives'\]: contrastive-only"),
+    ({"pretrain": {"coeff_local_negatives": 1.0}}, r"\['coeff_local_negatives'\]: contrastive-only"),
 ])
 def test_bad_task_options_are_refused_by_name(options, message):
     with pytest.raises(BenchConfigError, match=message):
@@ -101,3 +103,8 @@ def test_a_plan_without_the_occupancy_rule_is_refused_by_name():
     del old["rules"]["occupancy"]
     with pytest.raises(BenchConfigError, match="occupancy"):
         BenchConfig.from_dict(old)
+
+
+def test_contrastive_only_options_switched_off_are_accepted():
+    plan = plan_for("tiny", quick=True, task_options={"pretrain": {"shift_positives": 0, "coeff_local_negatives": 0.0}})
+    assert plan.stage_options("pretrain", {"objective": "regression"})["shift_positives"] == 0
