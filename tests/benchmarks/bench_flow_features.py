@@ -207,20 +207,17 @@ def main() -> None:
                   f"{row['margin']:+.4f} | {row['sharp']:.3f} |")
     for row in rows:
         print(json.dumps(row))
-    if mappers:
-        print("\ncontrolled object shift (view 0's input: only the moving objects' voxels move d along x):")
+    tests = (("controlled object shift (view 0's input: only the moving objects' voxels move d along x):",
+              controlled_object_shift, "controlled_shift",
+              "cos true {cos_true:.3f} | cos zero {cos_zero:.3f} | margin {margin:+.3f}"),
+             ("controlled scene shift (view 0's whole input moves d along x: content vs grid position):",
+              controlled_scene_shift, "scene_shift", "cos content {cos_content:.3f} | cos position {cos_position:.3f}"))
+    for title, test, key, cells in tests if mappers else ():
+        print("\n" + title)
         for name, m in mappers.items():
-            for d, r in controlled_object_shift(m, records, grid).items():
-                print(f"| {name:<14} | d={d} | cos true {r['cos_true']:.3f} | cos zero {r['cos_zero']:.3f} | "
-                      f"margin {r['margin']:+.3f} | {r['voxels']} voxels |")
-                print(json.dumps({"pair": name, "controlled_shift": d, **r}))
-        print("\ncontrolled scene shift (view 0's whole input moves d along x: content vs grid position):")
-        for name, m in mappers.items():
-            for d, r in controlled_scene_shift(m, records, grid).items():
-                print(f"| {name:<14} | d={d} | cos content {r['cos_content']:.3f} | cos position "
-                      f"{r['cos_position']:.3f} | {r['voxels']} voxels |")
-                print(json.dumps({"pair": name, "scene_shift": d, **r}))
-
+            for d, r in test(m, records, grid).items():
+                print(f"| {name:<14} | d={d} | " + cells.format(**r) + f" | {r['voxels']} voxels |")
+                print(json.dumps({"pair": name, key: d, **r}))
 
 if __name__ == "__main__":
     main()
