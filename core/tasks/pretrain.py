@@ -163,9 +163,9 @@ class PretrainTask(nn.Module):
 
         # encode_views in two steps: the matching term below reuses the target's lifted volume
         volume, in_view = self.mapper.lift_views(rgb, depth, pix_T_cam, cam_T_ref)  # B×V×4×Z×Y×X, B×V×1×Z×Y×X
-        occupied = volume[:, :, :1]                                     # B×V×1×Z×Y×X (labels: the unshifted grid)
+        occupied = volume[:, :, :1]                                     # B×V×1×Z×Y×X, on the unshifted grid
         offset = self._positive_offset()
-        if offset != (0, 0, 0):  # the target view lifted into the moved grid (see PretrainConfig.shift_positives)
+        if offset != (0, 0, 0):  # the target view lifted into the moved grid (PretrainConfig.shift_positives)
             volume = torch.cat([volume[:, :target], shift_voxels(volume[:, target], offset)[:, None],
                                 volume[:, target + 1:]], dim=1)         # B×V×4×Z×Y×X
         feats = self.mapper.encode_volumes(volume)                     # B×V×F×Z×Y×X

@@ -169,8 +169,8 @@ class BenchConfig:
                                        "(they define its arms)")
             one_arm = sorted(k for k in CONTRASTIVE_ONLY_OPTIONS if options.get(k))
             if one_arm and kind in ("mapper", "pretrain"):
-                raise BenchConfigError(f"task_options[{kind!r}] sets {one_arm}: contrastive-only pretraining options; "
-                                       "every arm gets the same options (the claims compare the objectives)")
+                raise BenchConfigError(f"task_options[{kind!r}] sets {one_arm}: contrastive-only pretraining "
+                                       "options; every arm gets the same options (the claims compare the objectives)")
         self.world_config()  # refuses unknown fields and bad values now, not at the data stage
 
     def world_config(self):
