@@ -144,8 +144,8 @@ class PretrainTask(nn.Module):
 
     def _positive_offset(self) -> tuple[int, int, int]:
         """(dx, dy, dz) whole voxels, each uniform in ±shift_positives; (0, 0, 0) when off (no draw)."""
-        s = self.cfg.shift_positives
-        if s == 0 or self.cfg.objective != "contrastive":
+        s = self.cfg.shift_positives  # > 0 only with the contrastive objective (PretrainConfig refuses it otherwise)
+        if s == 0:
             return (0, 0, 0)
         return tuple(self._randint(2 * s + 1) - s for _ in range(3))
 
