@@ -22,7 +22,10 @@ single fields (`dataclasses.replace`). The plan fixes, for the whole benchmark:
   defaults, for running the benchmark with a recipe other than the defaults (e.g. pretraining's matching
   term and a wider flow window): "mapper" goes to every stage that builds a mapper (pretraining, occupancy,
   detector, flow; e.g. `encoder_full_res`, which they must all agree on), the others to their stages. The options that
-  define the benchmark's arms (PROTOCOL_OPTIONS) cannot be set this way;
+  define the benchmark's arms (PROTOCOL_OPTIONS) cannot be set this way. Every arm gets the same options,
+  with one exception: "pretrain_contrastive" gives the contrastive pretraining options of its objective's own
+  construction that view regression has no counterpart of (CONTRASTIVE_ONLY_OPTIONS, e.g. `shift_positives`,
+  where its positives come from), on top of "pretrain"; nothing else can be given to one arm;
 - `world`: fields of the synthetic world (core.synthetic.config.WorldConfig) changed from the preset's for
   all three datasets, e.g. camera photometrics `{"exposure_std": 0.3, "pixel_noise_std": 0.03}` (default
   none: the preset's world, and a plan without the field reads as before).
@@ -54,13 +57,17 @@ DEFAULT_VARIANTS: tuple[tuple[str, str], ...] = (
 )
 
 
-# Kinds of stage `BenchConfig.task_options` may give options to ("mapper": every stage that builds one).
-TASK_OPTION_KINDS = ("mapper", "pretrain", "occupancy", "detector", "flow_features", "flow_volume")
+# Kinds of stage `BenchConfig.task_options` may give options to ("mapper": every stage that builds one;
+# "pretrain_contrastive": the contrastive arm's pretraining only, CONTRASTIVE_ONLY_OPTIONS only).
+TASK_OPTION_KINDS = ("mapper", "pretrain", "pretrain_contrastive", "occupancy", "detector", "flow_features",
+                     "flow_volume")
 # Options the benchmark sets itself to define its arms and protocol.
 PROTOCOL_OPTIONS = ("objective", "inputs", "labels", "freeze_features")
-# Pretraining options only the contrastive objective has (PretrainConfig refuses them for regression). Every
-# arm gets the same options, so the benchmark refuses them rather than fail at the regression arm's stage.
-CONTRASTIVE_ONLY_OPTIONS = ("coeff_local_negatives", "shift_positives")
+# Pretraining options only the contrastive objective has (PretrainConfig refuses them for regression): how its
+# negatives and positives are drawn. "mapper" and "pretrain" options go to every arm, so there they are refused
+# (rather than fail at the regression arm's stage); "pretrain_contrastive" takes these and only these, so that
+# the arms differ in their objective alone.
+CONTRASTIVE_ONLY_OPTIONS = ("coeff_local_negatives", "local_negative_radius", "shift_positives")
 
 
 class BenchConfigError(N3dmapError):
@@ -170,7 +177,13 @@ class BenchConfig:
             one_arm = sorted(k for k in CONTRASTIVE_ONLY_OPTIONS if options.get(k))
             if one_arm and kind in ("mapper", "pretrain"):
                 raise BenchConfigError(f"task_options[{kind!r}] sets {one_arm}: contrastive-only pretraining "
-                                       "options; every arm gets the same options (the claims compare the objectives)")
+                                       "options; every arm gets these options (the claims compare the objectives): "
+                                       "give them under \"pretrain_contrastive\"")
+            shared = sorted(set(options) - set(CONTRASTIVE_ONLY_OPTIONS))
+            if kind == "pretrain_contrastive" and shared:
+                raise BenchConfigError(f"task_options['pretrain_contrastive'] sets {shared}: it takes only the "
+                                       f"contrastive objective's own options {list(CONTRASTIVE_ONLY_OPTIONS)}; "
+                                       "options both arms have go under \"pretrain\" (every arm gets them)")
         self.world_config()  # refuses unknown fields and bad values now, not at the data stage
 
     def world_config(self):
@@ -187,8 +200,12 @@ class BenchConfig:
 
     def stage_options(self, kind: str, protocol: dict) -> dict:
         """Task options of a stage of `kind` ("pretrain", "occupancy", "detector", "flow_features", "flow_volume"):
-        the plan's "mapper" options, then the kind's own, then the benchmark's `protocol` options."""
-        return {**self.task_options.get("mapper", {}), **self.task_options.get(kind, {}), **protocol}
+        the plan's "mapper" options, then the kind's own (for the contrastive pretraining, `protocol`'s
+        objective, also "pretrain_contrastive"), then the benchmark's `protocol` options."""
+        own = self.task_options.get(kind, {})
+        if kind == "pretrain" and protocol.get("objective") == "contrastive":
+            own = {**own, **self.task_options.get("pretrain_contrastive", {})}
+        return {**self.task_options.get("mapper", {}), **own, **protocol}
 
     @property
     def budgets_sorted(self) -> tuple[int | None, ...]:

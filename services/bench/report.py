@@ -61,6 +61,8 @@ def write_bench_report(out: Path, *, config: BenchConfig, results: dict, stage_s
                               # shown only when not the default, so fp32 reports read as before
                               **({"training_precision": config.precision} if config.precision != "fp32" else {}),
                               **({"synthetic_world": dict(config.world)} if config.world else {}),
+                              # the recipe (services.bench.plan: task_options), so the report says what it ran
+                              **({"task_options": dict(config.task_options)} if config.task_options else {}),
                               "wall_time_this_run_s": round(wall_time_s, 1), "wall_time_all_stages_s": round(total_stages, 1)})
     report.text(f"Every number is the mean over {len(config.seeds)} seed(s) {list(config.seeds)}"
                 + (" ± the standard deviation over seeds" if len(config.seeds) > 1 else " (one seed: no spread)")

@@ -79,7 +79,9 @@ def register(subparsers) -> None:
     p.add_argument("--task-options", type=_json_object, default=None, metavar="JSON",
                    help='extra task options per kind of stage, e.g. \'{"mapper": {"encoder_full_res": 16}, '
                         '"pretrain": {"coeff_match": 1.0}, "flow_features": {"refine_radius": [3, 1, 3]}}\' '
-                        '(kinds: mapper, pretrain, occupancy, detector, flow_features, flow_volume; default: none)')
+                        '(kinds: mapper, pretrain, occupancy, detector, flow_features, flow_volume; every arm '
+                        'gets the same options, but pretrain_contrastive takes the contrastive objective\'s own '
+                        'shift_positives / coeff_local_negatives / local_negative_radius; default: none)')
     p.add_argument("--world", type=_json_object, default=None, metavar="JSON",
                    help='synthetic world fields changed for all three datasets, e.g. camera photometrics '
                         '\'{"exposure_std": 0.3, "white_balance_std": 0.1, "pixel_noise_std": 0.03}\' or '

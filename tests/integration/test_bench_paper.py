@@ -33,6 +33,7 @@ CLAIMS = ("detection_few_labels", "detection_more_labels", "detection_gain_low_d
 
 
 TASK_OPTIONS = {"mapper": {"encoder_full_res": 4}, "pretrain": {"coeff_match": 0.5},
+                "pretrain_contrastive": {"shift_positives": 1},
                 "flow_features": {"refine_radius": [2, 1, 2], "refine_aggregate": [1, 1, 1]}}
 
 
@@ -123,6 +124,11 @@ def test_metrics_json_has_every_key(bench_run):
         assert bundle["modules"]["mapper"]["config"]["full_res"] == 4, stage
     pretrain = json.loads((out / "work" / "seed0" / "pretrain_regression" / "bundle" / "bundle.json").read_text())
     assert pretrain["provenance"]["coeff_match"] == 0.5
+    assert "shift_positives" not in pretrain["provenance"]  # "pretrain_contrastive" reaches that arm only
+    pretrain = json.loads((out / "work" / "seed0" / "pretrain_contrastive" / "bundle" / "bundle.json").read_text())
+    assert pretrain["provenance"]["coeff_match"] == 0.5 and pretrain["provenance"]["shift_positives"] == 1
+    # the report says which recipe it ran
+    assert "- task_options: {'mapper': {'encoder_full_res': 4}" in (out / "report.md").read_text()
     # The quick plan's two label draws at 2 labels: draw 1 trains on records 2 and 3, the row is the draws' mean.
     train = ShardDataset(out / "work" / "data" / "train")
     for draw, first in ((0, 0), (1, 2)):

@@ -23,6 +23,32 @@ def test_stage_options_merge_mapper_then_kind_then_protocol():
     assert plan_for("tiny", quick=True).stage_options("detector", {"labels": None}) == {"labels": None}
 
 
+def test_contrastive_only_options_reach_the_contrastive_pretraining_only():
+    options = {"mapper": {"encoder_full_res": 16}, "pretrain": {"coeff_match": 1.0},
+               "pretrain_contrastive": {"shift_positives": 3, "coeff_local_negatives": 0.5}}
+    config = plan_for("tiny", quick=True, task_options=options)
+    assert config.stage_options("pretrain", {"objective": "contrastive"}) == {
+        "encoder_full_res": 16, "coeff_match": 1.0, "shift_positives": 3, "coeff_local_negatives": 0.5,
+        "objective": "contrastive"}
+    assert config.stage_options("pretrain", {"objective": "regression"}) == {
+        "encoder_full_res": 16, "coeff_match": 1.0, "objective": "regression"}
+    for kind in ("occupancy", "detector", "flow_features"):
+        assert "shift_positives" not in config.stage_options(kind, {})
+
+
+def test_a_contrastive_only_option_redoes_the_contrastive_arm_only(tmp_path):
+    from services.bench.replan import stage_digests
+
+    base = plan_for("tiny", quick=True, seeds=(0,), task_options={"pretrain": {"coeff_match": 1.0}})
+    shifted = plan_for("tiny", quick=True, seeds=(0,), task_options={
+        "pretrain": {"coeff_match": 1.0}, "pretrain_contrastive": {"shift_positives": 3}})
+    old, new = stage_digests(base, tmp_path), stage_digests(shifted, tmp_path)
+    changed = {name for name in old if old[name] != new[name]}
+    assert "seed0/pretrain_contrastive" in changed and "seed0/flow_contrastive" in changed
+    assert not any("regression" in name or "random" in name for name in changed), sorted(changed)
+    assert "seed0/pretrain_regression" in old
+
+
 def test_task_options_round_trip_and_old_plans_read_as_none():
     config = plan_for("tiny", quick=True, task_options=OPTIONS)
     assert BenchConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
@@ -36,8 +62,13 @@ def test_task_options_round_trip_and_old_plans_read_as_none():
     ({"pretrain": [1]}, "must be an object"),
     ({"pretrain": {"objective": "regression"}}, "'objective'"),
     ({"flow_features": {"inputs": "volume"}}, "'inputs'"),
-    ({"pretrain": {"shift_positives": 3}}, r"\['shift_positives'\]: contrastive-only"),
+    ({"pretrain": {"shift_positives": 3}}, r"\['shift_positives'\]: contrastive-only.*pretrain_contrastive"),
     ({"pretrain": {"coeff_local_negatives": 1.0}}, r"\['coeff_local_negatives'\]: contrastive-only"),
+    ({"mapper": {"local_negative_radius": 3}}, r"\['local_negative_radius'\]: contrastive-only"),
+    # one arm gets nothing both arms have: that would compare recipes, not objectives
+    ({"pretrain_contrastive": {"coeff_match": 1.0, "shift_positives": 3}},
+     r"pretrain_contrastive'\] sets \['coeff_match'\]"),
+    ({"pretrain_contrastive": {"objective": "regression"}}, "'objective'"),
 ])
 def test_bad_task_options_are_refused_by_name(options, message):
     with pytest.raises(BenchConfigError, match=message):
