@@ -52,18 +52,20 @@ def detection_table(per_seed: dict, variants, budgets: list[str], ious=("0.33", 
 
 def detection_draws_table(per_seed: dict, variants, budget: str, draws: int, iou: str = "0.5") -> dict:
     """{"arm/mode": [Spread over seeds of draw d's mAP@iou, for d < draws]} at `budget` (the label draws'
-    budget), plus "contrastive − regression (fine-tuned)": that difference per draw where both rows exist."""
+    budget), plus "contrastive − regression (frozen)" and "(fine-tuned)": those differences per draw where
+    both rows of a mode exist (the few-label claim reads the frozen one: services.bench.claims)."""
     def draw_maps(r: dict, variant: str) -> list:
         found = get_path(r, "detection", f"{variant}/{budget}", "draws") or []
         return [d.get(iou) for d in found] + [None] * (draws - len(found))
 
     # {variant: [each seed's mAP per draw]}, read once
     maps = {f"{a}/{m}": [draw_maps(r, f"{a}/{m}") for r in per_seed.values()] for a, m in variants}
-    contrastive, regression = maps.get("contrastive/finetuned"), maps.get("regression/finetuned")
-    if contrastive and regression:
-        maps["contrastive − regression (fine-tuned)"] = [
-            [None if c is None or g is None else c - g for c, g in zip(cs, gs)]
-            for cs, gs in zip(contrastive, regression)]
+    for mode, label in (("frozen", "frozen"), ("finetuned", "fine-tuned")):
+        contrastive, regression = maps.get(f"contrastive/{mode}"), maps.get(f"regression/{mode}")
+        if contrastive and regression:
+            maps[f"contrastive − regression ({label})"] = [
+                [None if c is None or g is None else c - g for c, g in zip(cs, gs)]
+                for cs, gs in zip(contrastive, regression)]
     return {variant: [spread(seed[d] for seed in seeds) for d in range(draws)] for variant, seeds in maps.items()}
 
 

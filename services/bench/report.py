@@ -107,7 +107,8 @@ def _detection_section(report: Report, det: dict, config: BenchConfig, budgets: 
         report.text(f"At N={few} every detector is trained on {draws} disjoint label sets (draw d: training records "
                     f"d·{few} to (d+1)·{few} − 1) and each N={few} cell is the mean over the draws: one set of {few} "
                     "records is too few to tell the arms apart by a margin of 0.02. mAP@0.5 by draw (mean ± std over "
-                    "seeds), and the difference the few-label claim reads, per draw:")
+                    "seeds), and the differences per draw (the few-label claims read the frozen pretrained "
+                    "arms against random init trained end to end, the paper's protocol):")
         by_draw = agg.detection_draws_table(per_seed, config.detector_variants, str(few), draws)
         report.table(["pretraining / features", *[f"draw {d}" for d in range(draws)]],
                      [[v, *[agg.fmt(s) for s in row]] for v, row in by_draw.items()])

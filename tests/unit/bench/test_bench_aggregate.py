@@ -81,6 +81,17 @@ def test_draws_table_spreads_each_draw_over_seeds_and_the_claims_difference():
     assert [s["values"] for s in table["contrastive/finetuned"]] == [[0.8, 0.9], [0.6, 0.5]]
     diff = table["contrastive − regression (fine-tuned)"]
     assert np.allclose(diff[0]["values"], [0.1, 0.3]) and np.allclose(diff[1]["values"], [-0.1, -0.3])
+    assert "contrastive − regression (frozen)" not in table  # no frozen rows ran
+    # both modes: one difference per mode, each of its own rows
+    for r, bump in zip(per_seed.values(), (0.05, -0.05)):
+        for arm in ("contrastive", "regression"):
+            r["detection"][f"{arm}/frozen/2"] = {"draws": [{"0.5": d["0.5"] + (bump if arm == "contrastive" else 0)}
+                                                           for d in r["detection"][f"{arm}/finetuned/2"]["draws"]]}
+    variants = [(a, m) for a in ("regression", "contrastive") for m in ("frozen", "finetuned")]
+    table = detection_draws_table(per_seed, variants, "2", 2)
+    frozen = table["contrastive − regression (frozen)"]
+    assert np.allclose(frozen[0]["values"], [0.15, 0.25]) and np.allclose(frozen[1]["values"], [-0.05, -0.35])
+    assert np.allclose(table["contrastive − regression (fine-tuned)"][0]["values"], [0.1, 0.3])
     # a seed without draws (a plan of one draw) leaves the cells empty rather than failing
     assert detection_draws_table({"0": {}}, [("random", "finetuned")], "2", 2)["random/finetuned"][1]["n"] == 0
 

@@ -4,6 +4,8 @@ The slow, obvious reference here is the rule written out by hand per case; `chec
 on per-seed results built by hand, so every number a verdict rests on is visible in the test.
 """
 
+import math
+
 import pytest
 
 from services.bench.claims import check_claims
@@ -138,6 +140,27 @@ def test_check_claims_judges_per_seed_results():
     assert few["per_seed"]["1"] == {"contrastive": 0.62, "regression": 0.52, "random": 0.41}
     assert "0.610 ± 0.008 [0.600, 0.620, 0.610]" in few["ours"]           # mean ± std beside each seed
     assert few["holds"] is True and claims["moving_camera_stabilised"]["holds"] is None
+
+
+def test_detection_claims_read_the_papers_protocol_frozen_pretrained_arms_and_random_end_to_end():
+    # fine-tuned, contrastive leads; frozen (the paper's protocol: features frozen after pretraining),
+    # regression leads: the claim reads the frozen rows, and random init's end-to-end row
+    per_seed = {}
+    for seed in ("0", "1", "2"):
+        r = _result(0.70, 0.60, 0.40, 0.90, 0.85)
+        r["detection"].update({k: {"map": {"0.5": v}} for k, v in {
+            "contrastive/frozen/2": 0.55, "regression/frozen/2": 0.65, "random/frozen/2": 0.10,
+            "contrastive/frozen/all": 0.95, "regression/frozen/all": 0.9, "random/frozen/all": 0.2}.items()})
+        per_seed[seed] = r
+    claims = {c["id"]: c for c in check_claims(per_seed, budgets=["2", "all"])}
+    few = claims["detection_few_labels"]
+    assert few["per_seed"]["0"] == {"contrastive": 0.55, "regression": 0.65, "random": 0.40}
+    assert few["verdict"] == FAILS and "regression/frozen" in few["criterion"] and "random/finetuned" in few["criterion"]
+    gain = claims["detection_gain_low_data"]["per_seed"]["0"]
+    assert math.isclose(gain["gain@2"], 0.55 - 0.40) and math.isclose(gain["gain@all"], 0.95 - 0.85)
+    # a plan without frozen rows falls back to the fine-tuned ones
+    only_finetuned = check_claims({s: _result(0.70, 0.60, 0.40, 0.90, 0.85) for s in "012"}, budgets=["2", "all"])
+    assert next(c for c in only_finetuned if c["id"] == "detection_few_labels")["per_seed"]["0"]["contrastive"] == 0.70
 
 
 def test_check_claims_one_flipped_seed_and_quick():
