@@ -6,8 +6,8 @@
 
 For each seed of a `bench paper` work directory and each pretraining arm, trains the fine-tuned detector
 (with --frozen: the pretrained arms' detectors on frozen features, the paper's protocol and the few-label
-claim's rows; random init is always trained end to end) the way the benchmark does (its plan's stopping rule and task options, `services.bench.training.
-train_stage`) on label draw d — training records d·N … (d+1)·N − 1, `labelled_subset(first=d·N)`; draw 0
+claim's rows; random init is always trained end to end) the way the benchmark does (its plan's stopping
+rule and task options, `services.bench.training.train_stage`) on label draw d — training records d·N … (d+1)·N − 1, `labelled_subset(first=d·N)`; draw 0
 is the benchmark's own set — with detector seed s + 100·d, and scores mAP on DIR's records (use records
 that are not the benchmark's test set). With --pretrain-steps N each arm is first pretrained here for N
 fixed steps with the plan's pretraining options updated by --pretrain-options (e.g. '{"coeff_match": 0}'
@@ -105,8 +105,9 @@ def main() -> None:
                     batch_size=min(batch_size, budget),
                     log=lambda _: None)
                 scores = evaluations.detection(load_bundle(bundle_dir, device), heldout, device=device)
-                row = {"seed": seed, "arm": arm, "draw": draw, "frozen": args.frozen, "map": scores["map"], "detections": scores["detections"],
-                       "gt": scores["gt_boxes"], "seconds": round(time.time() - started, 1)}
+                row = {"seed": seed, "arm": arm, "draw": draw, "frozen": args.frozen, "map": scores["map"],
+                       "detections": scores["detections"], "gt": scores["gt_boxes"],
+                       "seconds": round(time.time() - started, 1)}
                 rows.append(row)
                 with results_path.open("a") as f:
                     f.write(json.dumps(row) + "\n")
