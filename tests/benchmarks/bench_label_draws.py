@@ -2,7 +2,8 @@
 
     python tests/benchmarks/bench_label_draws.py --work REPORT_DIR/work --heldout DIR --out OUT
         [--seeds 0 1 2] [--arms contrastive regression] [--draws 0 1 2 3 4 5 6 7] [--budget 2]
-        [--pretrain-steps N --pretrain-options JSON] [--frozen] [--device cpu|cuda] [--threads 1]
+        [--pretrain-steps N --pretrain-options JSON] [--frozen] [--detector-steps N]
+        [--device cpu|cuda] [--threads 1]
 
 For each seed of a `bench paper` work directory and each pretraining arm, trains the fine-tuned detector
 (with --frozen: the pretrained arms' detectors on frozen features, the paper's protocol and the few-label
@@ -12,7 +13,8 @@ is the benchmark's own set — with detector seed s + 100·d, and scores mAP on 
 that are not the benchmark's test set). With --pretrain-steps N each arm is first pretrained here for N
 fixed steps with the plan's pretraining options updated by --pretrain-options (e.g. '{"coeff_match": 0}'
 for the paper's objectives without the matching term) instead of reading the benchmark's pretraining.
-Resumable: OUT/results.jsonl keeps every finished (seed, arm, draw, frozen); a rerun skips them. Prints one JSON
+With --detector-steps N the detectors train N fixed steps instead of the plan's rule (is that rule long
+enough to converge? compare runs at several N). Resumable: OUT/results.jsonl keeps every finished (seed, arm, draw, frozen); a rerun skips them. Prints one JSON
 line per detector, then per seed each arm's mAP@0.5 by draw and the contrastive − regression difference
 per draw (mean and sd over draws).
 
@@ -57,6 +59,8 @@ def main() -> None:
     p.add_argument("--pretrain-options", type=json.loads, default={})
     p.add_argument("--frozen", action="store_true",
                    help="pretrained arms' detectors on frozen features (the paper's protocol); random stays end to end")
+    p.add_argument("--detector-steps", type=int, default=0,
+                   help="train each detector this many fixed steps instead of the plan's rule (0: the rule)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="cpu")
     args = p.parse_args()
@@ -75,7 +79,11 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     results_path = args.out / "results.jsonl"
     rows = [json.loads(line) for line in results_path.read_text().splitlines()] if results_path.exists() else []
-    rows = [r for r in rows if r.get("frozen", False) == args.frozen]   # rows of the other protocol stay in the file
+    # rows of the other protocol or another detector length stay in the file
+    rows = [r for r in rows if r.get("frozen", False) == args.frozen
+            and r.get("detector_steps", 0) == args.detector_steps]
+    detector_rule = StageRule.fixed(args.detector_steps) if args.detector_steps else config.rules.detector
+    steps_suffix = f"_s{args.detector_steps}" if args.detector_steps else ""
     done = {(r["seed"], r["arm"], r["draw"]) for r in rows}
 
     def pretrained(seed: int, arm: str) -> Path | None:
@@ -95,17 +103,18 @@ def main() -> None:
                     continue
                 started = time.time()
                 frozen = args.frozen and arm != "random"
-                run_dir = args.out / f"seed{seed}_{arm}_d{draw}{'_frozen' if frozen else ''}"
+                run_dir = args.out / f"seed{seed}_{arm}_d{draw}{'_frozen' if frozen else ''}{steps_suffix}"
                 labels = labelled_subset(train_dir, run_dir, budget, first=draw * budget)
                 bundle_dir = train_stage(
-                    config, task="detector", data_dir=labels, run_dir=run_dir, rule=config.rules.detector,
+                    config, task="detector", data_dir=labels, run_dir=run_dir, rule=detector_rule,
                     seed=seed + 100 * draw, heldout_records=val_records,
                     task_options=config.stage_options("detector", {"labels": None, "freeze_features": frozen}),
                     init_bundle=pretrained(seed, arm), freeze=("mapper",) if frozen else (),
                     batch_size=min(batch_size, budget),
                     log=lambda _: None)
                 scores = evaluations.detection(load_bundle(bundle_dir, device), heldout, device=device)
-                row = {"seed": seed, "arm": arm, "draw": draw, "frozen": args.frozen, "map": scores["map"],
+                row = {"seed": seed, "arm": arm, "draw": draw, "frozen": args.frozen,
+                       "detector_steps": args.detector_steps, "map": scores["map"],
                        "detections": scores["detections"], "gt": scores["gt_boxes"],
                        "seconds": round(time.time() - started, 1)}
                 rows.append(row)
