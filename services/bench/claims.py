@@ -5,18 +5,21 @@
 "reason"}`. `per_seed` holds, for every seed, the named numbers the claim is decided on (so the report
 can print them beside mean ± std); `holds` is True / False / None (undetermined, or the quick profile,
 which is not judged). The conditions and floors are services.bench.judge's: a claim holds only when at
-least three seeds each show the paper's direction by the metric's floor.
+least three seeds each show the paper's direction by the metric's floor. Every claim is always listed: one
+a plan cannot test (no detector of an arm it reads; one label budget where it compares two) is undetermined,
+so that "N of 12 hold" always counts the same twelve.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable
 
 from services.bench import aggregate as agg
 from services.bench.aggregate import fmt, spread
 from services.bench.plan import OCCUPANCY_MODULE
 from services.bench.judge import (
-    FLOORS, AtLeast, Better, Condition, Positive, RatioAtMost, WithinOf, derive, judge,
+    FLOORS, UNDETERMINED, AtLeast, Better, Condition, Positive, RatioAtMost, WithinOf, derive, judge,
 )
 
 AP, GAIN, EPE = FLOORS["ap"], FLOORS["gain"], FLOORS["epe"]
@@ -52,8 +55,13 @@ def _ours(values: dict[str, dict], names: list[str], digits: int = 3) -> str:
 
 
 def _claim(cid: str, claim: str, paper: str, conditions: list[Condition], values: dict[str, dict],
-           shown: list[str], *, quick: bool, digits: int = 3, note: str = "") -> dict:
+           shown: list[str], *, quick: bool, digits: int = 3, note: str = "", untestable: str = "") -> dict:
+    """One claim's dict (module docstring). untestable: why this plan cannot test the claim at all (its
+    numbers do not exist); the claim is then undetermined, with every outcome "missing", and still counted."""
     verdict = judge(conditions, values, quick=quick)
+    if untestable and not quick:
+        verdict = replace(verdict, holds=None, verdict=UNDETERMINED, reason=untestable,
+                          outcomes={seed: ["missing"] * len(conditions) for seed in values})
     floors = sorted({c.floor.name + f": margin {c.floor.margin:g}"
                      + (f", meaningless below {c.floor.meaning:g}" if c.floor.meaning is not None else "")
                      for c in conditions if hasattr(c, "floor")})
@@ -75,36 +83,48 @@ def check_claims(per_seed: dict, *, budgets: list[str], variants: list[str] | No
     pick = {arm: next((f"{arm}/{m}" for m in modes if f"{arm}/{m}" in variants), None)
             for arm, modes in CLAIM_DETECTOR_MODES.items()}
 
-    if all(pick.values()):
-        def det(arm: str, budget: str):
-            return lambda r: _get(r, "detection", f"{pick[arm]}/{budget}", "map", "0.5")
+    # Every claim is always listed (the report counts "N of 12"): one the plan cannot test is undetermined.
+    def why_untestable(*arms: str, budgets_needed: int = 1) -> str:
+        """Why this plan cannot test a detection claim that reads `arms` at `budgets_needed` budgets ("": it can)."""
+        lacking = [arm for arm in arms if pick[arm] is None]
+        if lacking:
+            return f"the plan ran no detector of the {', '.join(lacking)} arm(s)"
+        if budgets_needed > 1 and few == full:
+            return f"the plan has one label budget ({few}): nothing to compare it with"
+        return ""
 
-        v = _values(per_seed, {"contrastive": det("contrastive", few), "regression": det("regression", few),
-                               "random": det("random", few)})
-        claims.append(_claim(
-            "detection_few_labels", "With few labels, view-contrastive pretraining beats view regression, "
-            "which beats random init (3D detection mAP@0.5).",
-            "CARLA/KITTI: contrastive .58-.60 > regression .54-.55 > random .52 mAP@0.5",
-            [Better("contrastive", "regression", AP), Better("regression", "random", AP)], v,
-            ["contrastive", "regression", "random"], quick=quick,
-            note=f"mAP@0.5 at {few} labelled records; {', '.join(pick.values())}"))
+    def det(arm: str, budget: str):
+        return lambda r: None if pick[arm] is None else _get(r, "detection", f"{pick[arm]}/{budget}", "map", "0.5")
 
-        v = _values(per_seed, {f"random@{full}": det("random", full), f"random@{few}": det("random", few)})
-        claims.append(_claim(
-            "detection_more_labels", "The supervised (random-init) detector improves with more labels.",
-            "mAP rises with the number of labels for every model",
-            [Better(f"random@{full}", f"random@{few}", AP)], v, [f"random@{few}", f"random@{full}"], quick=quick))
+    v = _values(per_seed, {"contrastive": det("contrastive", few), "regression": det("regression", few),
+                           "random": det("random", few)})
+    claims.append(_claim(
+        "detection_few_labels", "With few labels, view-contrastive pretraining beats view regression, "
+        "which beats random init (3D detection mAP@0.5).",
+        "CARLA/KITTI: contrastive .58-.60 > regression .54-.55 > random .52 mAP@0.5",
+        [Better("contrastive", "regression", AP), Better("regression", "random", AP)], v,
+        ["contrastive", "regression", "random"], quick=quick,
+        note=f"mAP@0.5 at {few} labelled records; {', '.join(p for p in pick.values() if p)}",
+        untestable=why_untestable("contrastive", "regression", "random")))
 
-        v = _values(per_seed, {f"contrastive@{few}": det("contrastive", few), f"random@{few}": det("random", few),
-                               f"contrastive@{full}": det("contrastive", full), f"random@{full}": det("random", full)})
-        derive(v, f"gain@{few}", lambda c, r: c - r, f"contrastive@{few}", f"random@{few}")
-        derive(v, f"gain@{full}", lambda c, r: c - r, f"contrastive@{full}", f"random@{full}")
-        claims.append(_claim(
-            "detection_gain_low_data", "Pretraining helps most in the low-data regime.",
-            "the gap to random init is largest at few labels",
-            [Positive(f"gain@{few}", AP, of=(f"contrastive@{few}", f"random@{few}")),
-             Better(f"gain@{few}", f"gain@{full}", GAIN)], v, [f"gain@{few}", f"gain@{full}"], quick=quick,
-            note="gain = contrastive − random mAP@0.5; the gain itself must be positive"))
+    v = _values(per_seed, {f"random@{full}": det("random", full), f"random@{few}": det("random", few)})
+    claims.append(_claim(
+        "detection_more_labels", "The supervised (random-init) detector improves with more labels.",
+        "mAP rises with the number of labels for every model",
+        [Better(f"random@{full}", f"random@{few}", AP)], v, [f"random@{few}", f"random@{full}"], quick=quick,
+        untestable=why_untestable("random", budgets_needed=2)))
+
+    v = _values(per_seed, {f"contrastive@{few}": det("contrastive", few), f"random@{few}": det("random", few),
+                           f"contrastive@{full}": det("contrastive", full), f"random@{full}": det("random", full)})
+    derive(v, f"gain@{few}", lambda c, r: c - r, f"contrastive@{few}", f"random@{few}")
+    derive(v, f"gain@{full}", lambda c, r: c - r, f"contrastive@{full}", f"random@{full}")
+    claims.append(_claim(
+        "detection_gain_low_data", "Pretraining helps most in the low-data regime.",
+        "the gap to random init is largest at few labels",
+        [Positive(f"gain@{few}", AP, of=(f"contrastive@{few}", f"random@{few}")),
+         Better(f"gain@{few}", f"gain@{full}", GAIN)], v, [f"gain@{few}", f"gain@{full}"], quick=quick,
+        note="gain = contrastive − random mAP@0.5; the gain itself must be positive",
+        untestable=why_untestable("contrastive", "random", budgets_needed=2)))
 
     for dim, paper in (("2d", "2D P@1 .20 (2D+3D contrastive) vs .00 (regression)"),
                        ("3d", "3D P@1 .80 (contrastive) vs .42 (regression)")):
@@ -165,16 +185,15 @@ def check_claims(per_seed: dict, *, budgets: list[str], variants: list[str] | No
         note="occupancy module fine-tuned from the contrastive pretraining, at the balanced threshold chosen on the "
              "validation records (each view as the input in turn)"))
 
-    if any(_get(r, "egomotion", "methods", "model", "rot_err_rad_mean") is not None for r in per_seed.values()):
-        def err(method: str, key: str):
-            return lambda r: _get(r, "egomotion", "methods", method, key)
+    def err(method: str, key: str):
+        return lambda r: _get(r, "egomotion", "methods", method, key)
 
-        v = _values(per_seed, {"model R": err("model", "rot_err_rad_mean"), "ICP R": err("icp", "rot_err_rad_mean"),
-                               "model t": err("model", "trans_err_m_mean"), "ICP t": err("icp", "trans_err_m_mean")})
-        claims.append(_claim(
-            "egomotion_vs_icp", "The egomotion module is on par with a geometric baseline.",
-            "R 0.120 rad, t 0.036 m vs ORB-SLAM2 0.089 rad, 0.038 m",
-            [RatioAtMost("model R", "ICP R", EGO_RATIO), RatioAtMost("model t", "ICP t", EGO_RATIO)], v,
-            ["model R", "ICP R", "model t", "ICP t"], quick=quick, digits=4, note="rad and m, moving-camera pairs"))
+    v = _values(per_seed, {"model R": err("model", "rot_err_rad_mean"), "ICP R": err("icp", "rot_err_rad_mean"),
+                           "model t": err("model", "trans_err_m_mean"), "ICP t": err("icp", "trans_err_m_mean")})
+    claims.append(_claim(
+        "egomotion_vs_icp", "The egomotion module is on par with a geometric baseline.",
+        "R 0.120 rad, t 0.036 m vs ORB-SLAM2 0.089 rad, 0.038 m",
+        [RatioAtMost("model R", "ICP R", EGO_RATIO), RatioAtMost("model t", "ICP t", EGO_RATIO)], v,
+        ["model R", "ICP R", "model t", "ICP t"], quick=quick, digits=4, note="rad and m, moving-camera pairs"))
     return claims
 

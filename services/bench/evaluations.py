@@ -35,9 +35,12 @@ def detection(bundle: Bundle, records, *, device) -> dict:
 
 def detection_over_draws(per_draw: list[dict]) -> dict:
     """One detector row from its label draws (each `detection`'s dict, same test records): mAP and BEV AP
-    averaged per IoU over the draws, detections averaged, and "draws": each draw's mAP per IoU, in order."""
+    averaged per IoU over the draws, detections averaged, and "draws": each draw's mAP per IoU, in order.
+    An IoU at which any draw has no AP (None: no ground-truth boxes) has no mean either (None), so that a
+    claim reading it is undetermined rather than judged on the other draws."""
     def mean(key: str) -> dict:
-        return {iou: sum(d[key][iou] for d in per_draw) / len(per_draw) for iou in per_draw[0][key]}
+        return {iou: None if any(d[key][iou] is None for d in per_draw)
+                else sum(d[key][iou] for d in per_draw) / len(per_draw) for iou in per_draw[0][key]}
 
     return {"map": mean("map"), "map_bev": mean("map_bev"),
             "gt_boxes": per_draw[0]["gt_boxes"], "frames": per_draw[0]["frames"],

@@ -16,8 +16,9 @@ sides sit below the metric's floor of meaning, e.g. two APs under 0.05: nothing 
 or "missing" (a number was not produced). The verdict, in this order:
 
 1. quick profile: no verdict at all (`holds` None, "not judged");
-2. a missing number, or fewer than `MIN_SEEDS` seeds: "undetermined";
-3. any seed disagreeing: "does not hold";
+2. any seed disagreeing: "does not hold" — every seed must agree, so one seed that shows the other
+   direction settles it whatever the other seeds lack;
+3. a missing number, or fewer than `MIN_SEEDS` seeds: "undetermined";
 4. any seed vacuous: "undetermined";
 5. otherwise (every seed agrees): "holds".
 
@@ -172,6 +173,11 @@ def judge(conditions: list[Condition], per_seed: Mapping[str, SeedValues], *, qu
     outcomes = {seed: [c.outcome(values) for c in conditions] for seed, values in per_seed.items()}
     if quick:
         return Verdict(None, NOT_JUDGED, "quick profile: its few steps say nothing about the paper", outcomes)
+    failing = {i: sorted((s for s, row in outcomes.items() if row[i] == "disagree"), key=_seed_key)
+               for i in range(len(conditions))}
+    if any(failing.values()):   # per condition, the seeds that fail it
+        return Verdict(False, FAILS, "; ".join(f"seed(s) {', '.join(seeds)} fail '{conditions[i].text()}'"
+                                               for i, seeds in failing.items() if seeds), outcomes)
     missing = [(s, c) for s, row in outcomes.items() for c, o in zip(conditions, row) if o == "missing"]
     if missing:
         s, c = missing[0]
@@ -179,12 +185,6 @@ def judge(conditions: list[Condition], per_seed: Mapping[str, SeedValues], *, qu
     if len(per_seed) < min_seeds:
         return Verdict(None, UNDETERMINED, f"{len(per_seed)} seed(s); a verdict needs at least {min_seeds}",
                        outcomes)
-    failing = [(s, c) for s, row in outcomes.items() for c, o in zip(conditions, row) if o == "disagree"]
-    if failing:
-        seeds = sorted({s for s, _ in failing}, key=_seed_key)
-        first = failing[0][1].text()
-        return Verdict(False, FAILS, f"seed(s) {', '.join(seeds)} fail '{first}'"
-                       + (f" (and {len(failing) - 1} more)" if len(failing) > 1 else ""), outcomes)
     vacuous = [(s, c) for s, row in outcomes.items() for c, o in zip(conditions, row) if o == "vacuous"]
     if vacuous:
         s, c = vacuous[0]

@@ -396,9 +396,13 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
     from core.eval.moving_protocol import camera_setting
     from core.eval.protocols import egomotion as egomotion_protocol
     ego_dir = train("egomotion", task="egomotion", rule=rules.egomotion)
-    moving_cam = [r for r in test_records if r["rgb"].shape[0] > 1 and camera_setting(r, 0) == "moving"] or test_records
+    # No fallback to other pairs: the claim is about a moving camera (none among the test records: no
+    # numbers, so the claim is undetermined).
+    moving_cam = [r for r in test_records if r["rgb"].shape[0] > 1 and camera_setting(r, 0) == "moving"]
 
     def egomotion_metrics() -> dict:
+        if not moving_cam:
+            return {"methods": {}, "skipped": "no moving-camera pairs among the test records"}
         ego_config = egomotion_protocol.EgomotionEvalConfig(perturb_deg=0.0, perturb_m=0.0, seed=seed, icp=True)
         return egomotion_protocol.summarize(egomotion_protocol.evaluate(load_bundle(ego_dir, device), moving_cam,
                                                                         ego_config, device=device))

@@ -4,7 +4,7 @@ Sections, in the paper's order: semi-supervised detection (mAP vs number of labe
 frozen and fine-tuned; the mAP@{0.33,0.5,0.75} table), retrieval P@1/5/10 (2D and 3D), flow EPE
 (full/static/moving with the zero-motion row), moving-object PR curves (static camera, moving camera,
 2.5D baselines), occupancy accuracy, egomotion vs ICP, then the claims, then the stages' wall times.
-Every number is the mean over seeds, with ± the standard deviation when there are several.
+Every number is the mean over seeds, with ± the (population) standard deviation when there are several.
 metrics.json's "metrics" holds the same tables (mean/std/n/values per cell), the claims, the config,
 the seeds, the wall times and the raw per-seed results.
 """
@@ -65,7 +65,8 @@ def write_bench_report(out: Path, *, config: BenchConfig, results: dict, stage_s
                               **({"task_options": dict(config.task_options)} if config.task_options else {}),
                               "wall_time_this_run_s": round(wall_time_s, 1), "wall_time_all_stages_s": round(total_stages, 1)})
     report.text(f"Every number is the mean over {len(config.seeds)} seed(s) {list(config.seeds)}"
-                + (" ± the standard deviation over seeds" if len(config.seeds) > 1 else " (one seed: no spread)")
+                + (" ± the standard deviation over seeds (population: divided by the number of seeds)"
+                   if len(config.seeds) > 1 else " (one seed: no spread)")
                 + ". Seeds change the weights' initialisation and the data order; the synthetic train/test data "
                 f"are shared (data seed {config.data_seed}, test seed {config.data_seed + 1}, validation seed "
                 f"{config.data_seed + 2}). How long each stage trains is its stopping rule's call (section "

@@ -59,8 +59,9 @@ def test_flow_table_adds_the_other_gates_rows_after_the_gated_ones():
     assert rows["contrastive, filled gate"]["moving"]["mean"] == 3.0 and rows["contrastive, no gate"]["moving"]["mean"] == 2.5
 
 
-def _det(m33: float, m50: float, detections: int) -> dict:
-    return {"map": {"0.33": m33, "0.5": m50}, "map_bev": {"0.33": m33 + 0.1, "0.5": m50 + 0.1}, "gt_boxes": 7,
+def _det(m33: float, m50: float | None, detections: int) -> dict:
+    return {"map": {"0.33": m33, "0.5": m50}, "map_bev": {"0.33": m33 + 0.1, "0.5": None if m50 is None else m50 + 0.1},
+            "gt_boxes": 7,
             "detections": detections, "frames": 4}
 
 
@@ -70,6 +71,15 @@ def test_a_row_over_label_draws_is_their_mean_and_keeps_each_draw():
     assert math.isclose(row["map"]["0.5"], (0.5 + 0.8 + 0.2) / 3) and math.isclose(row["map"]["0.33"], 0.8)
     assert math.isclose(row["map_bev"]["0.5"], (0.6 + 0.9 + 0.3) / 3) and row["detections"] == 20
     assert row["draws"] == [d["map"] for d in draws] and row["gt_boxes"] == 7 and row["frames"] == 4
+
+
+def test_a_draw_without_an_ap_leaves_that_iou_without_a_mean():
+    # a draw's AP is None where the records hold no ground truth: the mean at that IoU is missing (a claim
+    # reading it is undetermined), not the mean of the other draws, and the other IoUs keep theirs
+    draws = [_det(0.9, 0.5, 10), _det(0.7, None, 20)]
+    row = detection_over_draws(draws)
+    assert row["map"]["0.5"] is None and math.isclose(row["map"]["0.33"], 0.8)
+    assert row["draws"][1]["0.5"] is None
 
 
 def test_draws_table_spreads_each_draw_over_seeds_and_the_claims_difference():

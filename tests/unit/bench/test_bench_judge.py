@@ -87,6 +87,22 @@ def test_missing_number_is_undetermined():
     assert v.verdict == UNDETERMINED and "seed 1" in v.reason
 
 
+def test_a_failing_seed_settles_it_whatever_else_is_missing():
+    # seed 0 shows the other direction: "every seed agrees" is ruled out, whether or not seed 1 has its
+    # number, and with two seeds as with three
+    v = judge([Better("c", "r", AP)], seeds(c=[0.5, None, 0.9], r=[0.8, 0.1, 0.1]))
+    assert (v.holds, v.verdict) == (False, FAILS) and v.outcomes["1"] == ["missing"]
+    assert judge([Better("c", "r", AP)], seeds(c=[0.5, 0.9], r=[0.8, 0.1])).verdict == FAILS
+
+
+def test_the_reason_names_each_conditions_own_failing_seeds():
+    # seed 0 fails only the first condition, seeds 1 and 2 only the second
+    values = seeds(c=[0.70, 0.90, 0.90], r=[0.80, 0.80, 0.80], n=[0.50, 0.85, 0.79])
+    v = judge([Better("c", "r", AP), Better("r", "n", AP)], values)
+    assert v.verdict == FAILS
+    assert v.reason == "seed(s) 0 fail 'c > r by ≥ 0.02'; seed(s) 1, 2 fail 'r > n by ≥ 0.02'"
+
+
 def test_lower_is_better_and_absolute_targets():
     assert judge([Better("c", "z", EPE)], seeds(c=[3.3, 3.5, 3.4], z=[7.0, 6.9, 7.1])).verdict == HOLDS
     assert judge([Better("c", "z", EPE)], seeds(c=[1.90, 1.85, 1.88], z=[1.89, 1.89, 1.89])).verdict == FAILS
@@ -175,4 +191,35 @@ def test_check_claims_one_flipped_seed_and_quick():
 @pytest.mark.parametrize("n", [1, 2])
 def test_check_claims_with_too_few_seeds_never_holds(n):
     per_seed = {str(i): _result(0.60, 0.50, 0.40, 0.70, 0.65) for i in range(n)}
-    assert {c["verdict"] for c in check_claims(per_seed, budgets=["2", "all"])} == {UNDETERMINED}
+    claims = check_claims(per_seed, budgets=["2", "all"])
+    # a claim some seed contradicts does not hold; every other one is undetermined, never "holds"
+    for c in claims:
+        disagrees = any("disagree" in row for row in c["outcomes"].values())
+        assert c["verdict"] == (FAILS if disagrees else UNDETERMINED), c["id"]
+    assert {c["verdict"] for c in claims} == {FAILS, UNDETERMINED}
+
+
+def test_a_claim_the_plan_cannot_test_is_undetermined_and_still_counted():
+    good = {s: _result(0.60, 0.50, 0.40, 0.70, 0.65) for s in "012"}
+    full_plan = {c["id"] for c in check_claims(good, budgets=["2", "all"])}
+    assert len(full_plan) == 12
+    # one label budget: "more labels" and "gain at few labels" compare a budget with itself (a difference of 0,
+    # which would read as three disagreeing seeds); they are untestable, the few-label claim is not
+    one_budget = {c["id"]: c for c in check_claims(good, budgets=["2"])}
+    assert set(one_budget) == full_plan
+    for cid in ("detection_more_labels", "detection_gain_low_data"):
+        c = one_budget[cid]
+        assert (c["holds"], c["verdict"]) == (None, UNDETERMINED) and "one label budget (2)" in c["reason"]
+        assert c["outcomes"] == {s: ["missing"] * len(c["outcomes"][s]) for s in "012"}
+    assert one_budget["detection_few_labels"]["verdict"] == HOLDS
+    # no regression detector: the three-arm claim is untestable, the random-only one still judged
+    no_regression = {c["id"]: c for c in check_claims(good, budgets=["2", "all"], variants=[
+        "random/finetuned", "contrastive/finetuned"])}
+    assert no_regression["detection_few_labels"]["verdict"] == UNDETERMINED
+    assert "no detector of the regression arm" in no_regression["detection_few_labels"]["reason"]
+    assert no_regression["detection_more_labels"]["verdict"] == HOLDS
+    # no egomotion results: the claim stays listed, undetermined
+    for r in good.values():
+        del r["egomotion"]
+    ego = next(c for c in check_claims(good, budgets=["2", "all"]) if c["id"] == "egomotion_vs_icp")
+    assert ego["verdict"] == UNDETERMINED and "lacks a number" in ego["reason"]
