@@ -223,3 +223,34 @@ def test_a_claim_the_plan_cannot_test_is_undetermined_and_still_counted():
         del r["egomotion"]
     ego = next(c for c in check_claims(good, budgets=["2", "all"]) if c["id"] == "egomotion_vs_icp")
     assert ego["verdict"] == UNDETERMINED and "lacks a number" in ego["reason"]
+
+
+def test_each_claim_reads_its_own_rows_not_their_neighbours():
+    # Every claim holds on the rows it should read; each decoy beside them (another mode, dimension, camera
+    # setting, method, or the two sides swapped) would make it fail.
+    def result() -> dict:
+        r = _result(0.60, 0.50, 0.40, 0.70, 0.65, ret=(0.30, 0.10))
+        r["detection"].update({"random/frozen/2": {"map": {"0.5": 0.90}},        # decoy: the claims read
+                               "random/frozen/all": {"map": {"0.5": 0.10}}})     # random init end to end
+        r["retrieval"]["contrastive"]["2d"]["p@1"] = 0.05                       # 2D fails, 3D holds
+        r["moving"] = {
+            "static": {"contrastive, GT egomotion": {"ap": 0.50}, "regression, GT egomotion": {"ap": 0.20},
+                       "contrastive, egomotion module": {"ap": 0.10}, "2.5D Farneback": {"ap": 0.30}},
+            # module within 0.1 of the true poses and ahead of 2.5D by 0.03; swapped with the true poses'
+            # row it would lead 2.5D by only 0.01
+            "moving": {"contrastive, egomotion module": {"ap": 0.63}, "contrastive, GT egomotion": {"ap": 0.61},
+                       "2.5D Farneback": {"ap": 0.60}, "regression, GT egomotion": {"ap": 0.90}}}
+        # rotation and translation on different scales: swapping model and ICP, or R and t, fails
+        r["egomotion"] = {"methods": {"model": {"rot_err_rad_mean": 0.001, "trans_err_m_mean": 0.02},
+                                      "icp": {"rot_err_rad_mean": 0.010, "trans_err_m_mean": 0.03}}}
+        return r
+
+    claims = {c["id"]: c for c in check_claims({s: result() for s in "012"}, budgets=["2", "all"])}
+    assert claims["detection_more_labels"]["verdict"] == HOLDS          # random/finetuned 0.65 > 0.40
+    assert claims["retrieval_3d"]["verdict"] == HOLDS and claims["retrieval_2d"]["verdict"] == FAILS
+    assert claims["moving_static_vs_regression"]["verdict"] == HOLDS    # static 0.50 vs 0.20 (moving: 0.61 vs 0.90)
+    assert claims["moving_static_vs_2p5d"]["per_seed"]["0"] == {"contrastive": 0.50, "2.5D": 0.30, "regression": 0.20}
+    assert claims["moving_camera_stabilised"]["verdict"] == HOLDS
+    assert claims["egomotion_vs_icp"]["verdict"] == HOLDS
+    assert claims["egomotion_vs_icp"]["per_seed"]["0"] == {"model R": 0.001, "ICP R": 0.010, "model t": 0.02,
+                                                           "ICP t": 0.03}
