@@ -8,12 +8,14 @@ Definitions (all in voxels; documented once here and echoed in reports):
   ground-truth flow has L2 norm > `moving_threshold` (default 1e-3 voxel: any real motion), `static` =
   the rest. The evaluated voxels are the `valid` mask (default: all voxels).
 - Scene-flow scores on OCCUPIED voxels (FlowNet3D-style, re-expressed for voxel units):
-  EPE3D = mean L2 norm of the error; relative error = EPE3D / ‖gt‖₂ where ‖gt‖₂ > 0;
+  EPE3D = mean L2 norm of the error; relative error = EPE3D / ‖gt‖₂ on moving voxels;
   Acc3DS (strict) = fraction with EPE < 0.5 voxel OR relative error < 5%;
   Acc3DR (relaxed) = fraction with EPE < 1 voxel OR relative error < 10%;
   Outliers = fraction with EPE > 1.2 voxel (0.3 m at the paper's 0.25 m voxels) OR relative error > 10%.
-  On voxels whose ground truth is exactly zero, relative error is undefined and only the absolute
-  thresholds apply (otherwise every static voxel with any error would be an outlier).
+  On static voxels (ground-truth norm ≤ `moving_threshold`) relative error is undefined and only the
+  absolute thresholds apply: otherwise every static voxel with any error would be an outlier — and a
+  static voxel's true flow is rarely exactly zero (the float32 pose round trip of `gt_flow` leaves
+  ~1e-6 voxel), so the test must use the same threshold as the moving split, not "> 0".
 
 Dataset-level numbers are ratios of sums (every voxel weighs the same), so the functions return sums and
 counts (`flow_error_sums`) that `flow_scores` turns into scores; both are pure.
@@ -64,8 +66,8 @@ def flow_error_sums(pred: torch.Tensor, gt: torch.Tensor, *, valid: torch.Tensor
     for split, m in (("full", valid), ("static", static), ("moving", moving)):
         out[f"l1_sum_{split}"] = float(l1[m].sum())
         out[f"count_{split}"] = float(m.sum())
-    has_rel = gt_norm > 0
-    rel = torch.where(has_rel, epe / gt_norm.clamp_min(1e-12), torch.zeros_like(epe))
+    has_rel = gt_norm > moving_threshold  # relative error only where the voxel moves (module docstring)
+    rel = torch.where(has_rel, epe / gt_norm.clamp_min(moving_threshold), torch.zeros_like(epe))
     strict = (epe < STRICT_ABS) | (has_rel & (rel < STRICT_REL))
     relaxed = (epe < RELAXED_ABS) | (has_rel & (rel < RELAXED_REL))
     outlier = (epe > OUTLIER_ABS) | (has_rel & (rel > OUTLIER_REL))

@@ -108,6 +108,20 @@ def test_flow_scene_flow_scores_hand_case():
     assert s["outliers"] == pytest.approx(0.25)
 
 
+def test_flow_static_voxels_with_pose_round_off_are_judged_by_the_absolute_thresholds_only():
+    # static voxels whose true flow is 1e-6 voxel (the float32 pose round trip of gt_flow), predicted
+    # 1e-4 voxel off: nearly exact, so no outliers and both accuracies 1 — a relative test against
+    # 1e-6 would call every one an outlier (error 100 × the "motion"); the moving voxel keeps its test
+    gt = torch.full((1, 3, 1, 1, 3), 1e-6)
+    gt[0, 0, 0, 0, 2] = 2.0                  # moving: pred 0.3 voxel off, 15 % relative error
+    pred = gt + 1e-4
+    pred[0, 0, 0, 0, 2] = 2.3
+    s = flow_scores(flow_error_sums(pred, gt))
+    assert s["outliers"] == pytest.approx(1 / 3)   # the moving voxel only (rel 15 % > 10 %)
+    assert s["acc3ds"] == pytest.approx(1.0) and s["acc3dr"] == pytest.approx(1.0)   # 0.3 < 0.5 voxel
+    assert s["voxels_moving"] == 1
+
+
 def test_flow_masks_and_accumulation():
     pred, gt = _flow_case()
     occupied = torch.tensor([True, False, True, False]).view(1, 1, 1, 1, 4)
