@@ -89,10 +89,13 @@ def oracle_flow2d_rig(record, t: int, view: int) -> np.ndarray:
 
 
 def moving_objects_2p5d_rig(record, t: int, *, flow_source: str, stabilise: bool, threshold_px: float,
-                            min_pixels: int, dt: float, nms_iou: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+                            min_pixels: int, dt: float, nms_iou: float = 0.3,
+                            grid: GridConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The 2.5D baseline (core.baselines.flow2d) on every view of the pair (t, t+1), boxes lifted to
     ref_t and merged across views by BEV NMS. flow_source: "farneback" or "oracle" (ground-truth 2D
-    flow); stabilise: subtract the flow the camera motion induces (with the true relative pose).
+    flow); stabilise: subtract the flow the camera motion induces (with the true relative pose);
+    grid: keep only boxes whose centre lies in it — the region the ground truth (`gt_moving_boxes`) and
+    the 3D methods' boxes cover, so that a right detection beyond the map is not a false positive.
 
     Returns (boxes D×7 in ref_t, scores D), best first.
     """
@@ -116,5 +119,10 @@ def moving_objects_2p5d_rig(record, t: int, *, flow_source: str, stabilise: bool
     if not boxes:
         return np.zeros((0, 7)), np.zeros(0)
     boxes_arr, scores_arr = np.stack(boxes), np.asarray(scores, dtype=np.float64)
+    if grid is not None:
+        inside = ((boxes_arr[:, :3] >= grid.bounds_min) & (boxes_arr[:, :3] < grid.bounds_max)).all(-1)
+        boxes_arr, scores_arr = boxes_arr[inside], scores_arr[inside]
+        if not len(boxes_arr):
+            return np.zeros((0, 7)), np.zeros(0)
     keep = nms_bev(boxes_arr, scores_arr, nms_iou)
     return boxes_arr[keep], scores_arr[keep]

@@ -118,7 +118,7 @@ def evaluate(bundle, records, config: MovingEvalConfig = MovingEvalConfig(), *, 
                     found[name] = moving_objects_2p5d_rig(record, t, flow_source=source, stabilise=stabilise,
                                                           threshold_px=config.threshold_px,
                                                           min_pixels=config.min_pixels, dt=objects.dt,
-                                                          nms_iou=objects.nms_iou)
+                                                          nms_iou=objects.nms_iou, grid=grid)
             for name, (boxes, scores) in found.items():
                 acc[cam][name].add_frame(boxes, scores, gt)
             pairs[cam] += 1

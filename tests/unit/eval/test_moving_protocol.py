@@ -66,3 +66,24 @@ def test_camera_setting_and_ground_truth_boxes():
     assert len(gt_moving_boxes(rec, 0, TINY.grid, min_points=10_000)) == 0  # not enough points on it
     rec["box_moving"][:] = False
     assert len(gt_moving_boxes(rec, 0, TINY.grid)) == 0
+
+
+def test_2p5d_boxes_are_kept_only_where_the_ground_truth_can_be():
+    # the 2.5D baseline sees the moving box; the ground truth covers only boxes centred in the grid, so its
+    # boxes are limited to the grid too (beyond it, a right detection would count as a false positive)
+    from dataclasses import replace
+
+    from core.eval.moving_protocol import moving_objects_2p5d_rig
+
+    rec = _record(False)
+    kwargs = dict(flow_source="oracle", stabilise=False, threshold_px=0.5, min_pixels=5, dt=0.1)
+    boxes, scores = moving_objects_2p5d_rig(rec, 0, **kwargs)
+    assert len(boxes) >= 1 and np.all(np.abs(boxes[:, 2] - 10.0) < 3.0)      # near the car, 10 m ahead
+    in_grid, in_scores = moving_objects_2p5d_rig(rec, 0, grid=TINY.grid, **kwargs)
+    np.testing.assert_array_equal(in_grid, boxes)
+    np.testing.assert_array_equal(in_scores, scores)
+    # the same map moved 30 m further ahead: nothing it holds moves, so the baseline reports nothing
+    far = replace(TINY.grid, zmin=TINY.grid.zmin + 30.0, zmax=TINY.grid.zmax + 30.0)
+    assert len(gt_moving_boxes(rec, 0, far)) == 0
+    far_boxes, far_scores = moving_objects_2p5d_rig(rec, 0, grid=far, **kwargs)
+    assert far_boxes.shape == (0, 7) and far_scores.shape == (0,)
