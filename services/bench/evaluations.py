@@ -48,12 +48,15 @@ def detection_over_draws(per_draw: list[dict]) -> dict:
             "draws": [dict(d["map"]) for d in per_draw]}
 
 
-def random_pretrain_bundle(preset, *, seed: int, device) -> Bundle:
-    """The random-init arm: an untrained contrastive model's modules (seeded), as an in-memory bundle."""
+def random_pretrain_bundle(preset, *, seed: int, device, task_options: dict | None = None) -> Bundle:
+    """The random-init arm: an untrained contrastive model's modules (seeded), as an in-memory bundle.
+    task_options: the contrastive pretraining's (the plan's), so that the untrained model has the trained
+    arms' architecture (e.g. the mapper's full-resolution branch)."""
     from core.tasks import build_task
 
     torch.manual_seed(seed)
-    task = build_task("pretrain", preset, objective="contrastive").to(device).eval()
+    options = {**(task_options or {}), "objective": "contrastive"}
+    task = build_task("pretrain", preset, **options).to(device).eval()
     return Bundle(preset=preset, modules=dict(task.exported_modules()), meta={"provenance": {"random_init": seed}})
 
 

@@ -338,8 +338,12 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
     # Retrieval per arm (random: an untrained, seeded model).
     for arm in ("random", *PRETRAINED_ARMS):
         def retrieval(a=arm) -> dict:
-            bundle = (evaluations.random_pretrain_bundle(preset, seed=seed, device=device) if a == "random"
-                      else load_bundle(pretrained[a], device))
+            if a == "random":   # the contrastive arm's model, untrained
+                bundle = evaluations.random_pretrain_bundle(
+                    preset, seed=seed, device=device,
+                    task_options=config.stage_options("pretrain", {"objective": "contrastive"}))
+            else:
+                bundle = load_bundle(pretrained[a], device)
             return evaluations.retrieval(bundle, test_records, device=device, per_example=config.retrieval_per_example,
                                          cube=config.retrieval_cube, seed=seed)
         result["retrieval"][arm] = evaluate(f"retrieval/{arm}", retrieval,

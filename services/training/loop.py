@@ -6,7 +6,10 @@ checkpoints go, and how values are averaged over workers.
 
 Guarantees:
 - resume: the session's latest checkpoint (if any) restores task, optimizer, step and weight average;
-  otherwise an `--init` bundle's modules are loaded; the loop then runs until `config.steps`.
+  otherwise an `--init` bundle's modules are loaded; the loop then runs until `config.steps`. Torch's
+  generators are seeded before every step from (run seed, rank, step) (seeding.py), so a task's random
+  draws at a step do not depend on where the run was cut (its batch order does; a task built with its
+  own `seed` option keeps its own generator, which a resume restarts).
 - `config.ema_decay > 0`: a moving average of the weights (weight_average.py) follows every optimizer
   step and goes into each checkpoint; the export and the benchmark's held-out criterion read it.
 - every `checkpoint_every` steps and at the last step every rank calls `session.report` (a Ray
@@ -33,6 +36,7 @@ from services.training.checkpoints import (
 )
 from services.training.config import TrainJobConfig
 from services.training.progress import ProgressLogger
+from services.training.seeding import step_seed
 from services.training.weight_average import WeightAverage
 
 
@@ -222,6 +226,7 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
         batches_this_epoch = 0
         for records in session.epoch_batches(epoch):
             batches_this_epoch += 1
+            torch.manual_seed(step_seed(config.seed, session.rank, step))  # draws by step, not by call (seeding.py)
             _set_train_mode(task, exported, config.freeze)
             batch = spec.to_batch(records, device)
             # bf16: autocast (CPU or CUDA, from the device) covers the forward and the task's loss; the

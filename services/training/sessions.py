@@ -18,6 +18,7 @@ import torch
 from core.device import resolve_device
 from services.training.checkpoints import LocalCheckpointStore
 from services.training.config import TrainJobConfig
+from services.training.seeding import shuffle_seed
 
 # Records in the local shuffle buffer of each Ray worker (a few batches' worth mixes within shards).
 SHUFFLE_BUFFER_RECORDS = 16
@@ -98,7 +99,7 @@ class RaySession:
         for batch in self._shard.iter_batches(
                 batch_size=self.config.batch_size, batch_format="numpy", drop_last=True,
                 local_shuffle_buffer_size=max(SHUFFLE_BUFFER_RECORDS, self.config.batch_size),
-                local_shuffle_seed=self.config.seed * 1000 + epoch * 10 + self.rank):
+                local_shuffle_seed=shuffle_seed(self.config.seed, epoch, self.rank)):
             yield decode_rows(batch)
 
     @contextlib.contextmanager

@@ -139,3 +139,20 @@ def test_a_plan_without_the_occupancy_rule_is_refused_by_name():
 def test_contrastive_only_options_switched_off_are_accepted():
     plan = plan_for("tiny", quick=True, task_options={"pretrain": {"shift_positives": 0, "coeff_local_negatives": 0.0}})
     assert plan.stage_options("pretrain", {"objective": "regression"})["shift_positives"] == 0
+
+
+def test_the_random_arm_has_the_trained_arms_architecture():
+    # the untrained retrieval row must be the model the arms train (here: with the full-resolution branch),
+    # untrained, not the preset's default architecture
+    from core.presets import TINY
+    from core.tasks import build_task
+    from services.bench.evaluations import random_pretrain_bundle
+
+    config = plan_for("tiny", task_options={"mapper": {"encoder_full_res": 4}})
+    options = config.stage_options("pretrain", {"objective": "contrastive"})
+    random = random_pretrain_bundle(TINY, seed=0, device="cpu", task_options=options)
+    trained = build_task("pretrain", TINY, **options).exported_modules()
+    default = random_pretrain_bundle(TINY, seed=0, device="cpu")
+    shapes = {name: {k: v.shape for k, v in m.state_dict().items()} for name, m in trained.items()}
+    assert {name: {k: v.shape for k, v in m.state_dict().items()} for name, m in random.modules.items()} == shapes
+    assert {name: {k: v.shape for k, v in m.state_dict().items()} for name, m in default.modules.items()} != shapes

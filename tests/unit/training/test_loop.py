@@ -48,6 +48,31 @@ def test_rerun_resumes_from_the_latest_checkpoint(tmp_path):
     assert again.start_step == again.step == 30
 
 
+def test_a_run_cut_into_chunks_draws_at_each_step_what_an_uninterrupted_one_draws(tmp_path):
+    # the benchmark's stopping rules train in chunks, each a resume: the task's random draws must go on,
+    # not restart with every call (they once replayed the first chunk's draws in every chunk)
+    records = toy_records(32)
+    whole: list[float] = []
+    _run(_config(tmp_path / "whole", steps=12, checkpoint_every=4), records, toy_spec(draws=whole))
+    chunked: list[float] = []
+    for steps in (4, 8, 12):
+        _run(_config(tmp_path / "chunked", steps=steps, checkpoint_every=4), records, toy_spec(draws=chunked))
+    assert len(whole) == len(chunked) == 12 and chunked == whole
+    assert len(set(chunked)) == 12          # no chunk repeats another's draws
+    other: list[float] = []
+    _run(_config(tmp_path / "other", steps=4, seed=1), records, toy_spec(draws=other))
+    assert other != whole[:4]               # another run seed draws otherwise
+
+
+def test_step_seeds_differ_by_seed_rank_and_step():
+    from services.training.seeding import shuffle_seed, step_seed
+
+    seeds = {step_seed(s, r, t) for s in range(3) for r in range(3) for t in range(0, 3000, 100)}
+    assert len(seeds) == 3 * 3 * 30 and all(0 <= x < 2**63 for x in seeds)
+    # the old shuffle seed, seed·1000 + epoch·10 + rank, gave seed 0 at epoch 100 seed 1's epoch 0
+    assert shuffle_seed(0, 100, 0) != shuffle_seed(1, 0, 0) and 0 <= shuffle_seed(5, 7, 1) < 2**31
+
+
 def test_non_finite_loss_stops_before_the_step_and_keeps_the_last_good_checkpoint(tmp_path):
     config = _config(tmp_path, steps=40, checkpoint_every=5)
     outcome = _run(config, toy_records(32), toy_spec(nan_at_call=13))

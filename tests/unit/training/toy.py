@@ -21,10 +21,11 @@ def toy_records(n: int, seed: int = 0) -> list[dict]:
 class ToyTask(nn.Module):
     """forward(batch) -> {"loss": MSE, "abs_err": mean |error|}; loss is NaN from call `nan_at_call`."""
 
-    def __init__(self, *, nan_at_call: int | None = None) -> None:
+    def __init__(self, *, nan_at_call: int | None = None, draws: list[float] | None = None) -> None:
         super().__init__()
         self.head = nn.Linear(3, 1)
         self.nan_at_call = nan_at_call
+        self.draws = draws   # when given: one draw of torch's global generator per call, as real tasks draw
         self.calls = 0
         self.pred_dtypes: list[torch.dtype] = []   # the linear layer's output dtype, per call (autocast: bf16)
 
@@ -33,6 +34,8 @@ class ToyTask(nn.Module):
 
     def forward(self, batch: dict) -> dict:
         self.calls += 1
+        if self.draws is not None:
+            self.draws.append(float(torch.rand(())))
         pred = self.head(batch["x"]).squeeze(-1)                 # B
         self.pred_dtypes.append(pred.dtype)
         err = pred - batch["y"]                                   # B
@@ -47,6 +50,6 @@ def _to_batch(records: list[dict], device) -> dict:
             "y": torch.from_numpy(np.stack([r["y"] for r in records])).to(device)}   # B
 
 
-def toy_spec(nan_at_call: int | None = None) -> TaskSpec:
-    return TaskSpec(build=lambda config, device: ToyTask(nan_at_call=nan_at_call).to(device),
+def toy_spec(nan_at_call: int | None = None, draws: list[float] | None = None) -> TaskSpec:
+    return TaskSpec(build=lambda config, device: ToyTask(nan_at_call=nan_at_call, draws=draws).to(device),
                     to_batch=_to_batch, exported=lambda task: task.exported_modules())
