@@ -245,7 +245,8 @@ def _claims_section(report: Report, claims: list[dict], config: BenchConfig) -> 
 def _stopping_section(report: Report, config: BenchConfig, stopping: dict) -> None:
     report.heading("Training: stopping rules and steps run")
     report.text("Each stage trains by its rule; plateau rules score the task's own loss on the validation records "
-                f"({config.val_episodes}, never the test set) and keep the best evaluation's weights.")
+                f"({config.val_episodes}, never the test set) and keep the best evaluation's weights (the best moves "
+                "only on a drop by the rule's margin).")
     report.table(["stage", "rule"], [[name, rule.describe()] for name, rule in vars(config.rules).items()])
     rows = []
     for seed, stages in stopping.items():

@@ -11,7 +11,9 @@ noisy; measured in plan.py).
              held-out records (the benchmark's validation split, never the test split) with a fixed
              seed; stop once `patience` evaluations in a row brought no relative drop of at least
              `min_improvement` below the best, or at `max_steps`; never before `min_steps`. The stage's
-             bundle is the best evaluation's (early stopping keeps the best weights);
+             bundle is the best evaluation's (early stopping keeps the best weights), where "best"
+             moves only on such a drop (Keras's `min_delta`): of losses 1.000, 0.997, 0.994, 0.992
+             the first stays the best although the last is 0.8 % lower;
 - "epochs":  `epochs` passes over the stage's training records (the detector's labelled records:
              ceil(records / batch) steps each), clamped to [`min_steps`, `max_steps`] — so 2 labelled
              records and 64 get the same number of looks at each label instead of the same step count.
@@ -86,7 +88,7 @@ class StageRule:
             return (f"{self.epochs} epochs over its records, within [{self.min_steps}, {self.max_steps}] "
                     f"steps{average}")
         return (f"held-out loss every {self.eval_every} steps; stop after {self.patience} evaluations without a "
-                f"{self.min_improvement:.0%} drop below the best (best weights kept), within "
+                f"{self.min_improvement:.0%} drop below the best (the best's weights kept), within "
                 f"[{self.min_steps}, {self.max_steps}] steps{average}")
 
     def epoch_steps(self, records: int, batch_size: int) -> int:
