@@ -51,6 +51,7 @@ def train_stage(config: BenchConfig, *, task: str, data_dir: Path, run_dir: Path
         return heldout_task_loss(j, heldout_records, checkpoint_dir=latest_checkpoint_dir(j), batch_size=j.batch_size)
 
     records = int(load_manifest(data_dir)["num_records"])
+    # an "epochs" rule counts the records a step consumes: every worker's batch
     train_by_rule(rule, Path(run_dir), train_to=train_to, heldout_loss=heldout, records=records,
-                  batch_size=job(rule.max_steps).batch_size, log=log)
+                  batch_size=job(rule.max_steps).batch_size * max(1, config.workers), log=log)
     return Path(run_dir) / SELECTED

@@ -67,6 +67,8 @@ def run_training(config: TrainJobConfig, *, spec: TaskSpec = CORE_TASKS) -> RunS
     config.run_path.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     done = _finished_checkpoint(config)
+    if done is None:
+        _check_same_mode(config)
     if done is not None:  # rerun of a complete run: nothing to train, export again
         checkpoint_dir, state = done
         outcome = LoopOutcome(status="finished", step=state.step, start_step=state.step,
@@ -94,6 +96,19 @@ def _finished_checkpoint(config: TrainJobConfig):
     state = read_checkpoint_state(latest)
     check_same_run(state.config, config.identity(), latest)
     return (latest, state) if state.step >= config.steps else None
+
+
+def _check_same_mode(config: TrainJobConfig) -> None:
+    """A run resumes only in the mode that started it: in-process runs (--workers 0) keep their
+    checkpoints under RUN_DIR/checkpoints and Ray runs under RUN_DIR/<ray storage>, and each mode resumes
+    from its own folder only — a cut-off Ray run continued in-process would start again from step 0 while
+    its evaluations and newest checkpoint stayed beside it. TrainingError naming both, if so."""
+    # the other mode's folder
+    there = config.run_path / config.ray_storage_name if config.workers == 0 else config.local_checkpoint_root
+    if LocalCheckpointStore(there, keep=1).list():
+        other = "--workers 0 (in-process)" if config.workers > 0 else "--workers >= 1 (Ray Train)"
+        raise TrainingError(f"run {config.run_dir} was started with {other} (checkpoints in {there}); "
+                            f"resume it that way, or use a new --run-dir")
 
 
 # ----------------------------------------------------------------------------- in-process

@@ -156,3 +156,17 @@ def test_scalar_metrics_follow_the_loss_device():
     metrics = _scalar_metrics(out)
     assert sorted(metrics) == ["acc", "count", "loss"]
     assert all(v.device.type == "meta" and v.shape == () and v.dtype == torch.float32 for v in metrics.values())
+
+
+def test_a_run_resumes_only_in_the_mode_that_started_it(tmp_path):
+    # in-process and Ray runs keep their checkpoints in different folders and each mode resumes from its own:
+    # continuing a run in the other mode would start again from step 0 beside the old checkpoints
+    from services.training.job import TrainingError, _check_same_mode
+
+    _run(_config(tmp_path, steps=10), toy_records(16))          # in-process: RUN_DIR/checkpoints
+    _check_same_mode(_config(tmp_path, steps=20))              # the same mode resumes
+    with pytest.raises(TrainingError, match=r"was started with --workers 0 \(in-process\)"):
+        _check_same_mode(_config(tmp_path, steps=20, workers=1))
+    (tmp_path / "run" / "checkpoints").rename(tmp_path / "run" / "ray_train")   # as a Ray run leaves it
+    with pytest.raises(TrainingError, match=r"--workers >= 1 \(Ray Train\).*new --run-dir"):
+        _check_same_mode(_config(tmp_path, steps=20))
