@@ -129,10 +129,15 @@ def view_contrastive_loss(top_down: torch.Tensor, bottom_up: torch.Tensor, valid
     rows, cols = sample_positions(ok, config.samples, generator)
     if rows.numel() < 2:  # a negative needs at least two pairs
         return (top_down.sum() + bottom_up.sum()) * 0.0
+    # One label per (example, position): a position drawn twice (sampling with replacement, when an example
+    # has fewer valid positions than samples) is the same pair, never its own negative.
+    ids = rows * top.shape[2] + cols             # K
+    if ids.unique().numel() < 2:  # a negative needs a second distinct pair
+        return (top_down.sum() + bottom_up.sum()) * 0.0
     a = top[rows, :, cols].float()               # K×C
     b = bot[rows, :, cols].float()               # K×C
     emb = torch.stack([a, b], dim=1).reshape(-1, C)  # 2K×C, pairs interleaved (top, bottom, top, …)
-    labels = torch.arange(a.shape[0], device=emb.device).repeat_interleave(2)  # 2K
+    labels = ids.repeat_interleave(2)            # 2K
     negatives = sample_negatives(emb, labels, cutoff=config.cutoff,
                                  nonzero_loss_cutoff=config.nonzero_loss_cutoff, generator=generator)
     partner = torch.arange(emb.shape[0], device=emb.device) ^ 1  # index of the other half of each pair

@@ -3,7 +3,9 @@
 One step, all at one time step t of each record (B×T×V views):
   1. pick a held-out target view v* (and t) at random; the other views are the inputs;
   2. lift every view into `ref` with its known pose (cam_T_ref = inv(world_T_cam)·world_T_ref) and
-     encode it with the shared 3D encoder-decoder (one batched pass);
+     encode it with the shared 3D encoder-decoder: the input views in one batched pass, the target in
+     its own (as the authors' code: in training mode BatchNorm's batch statistics would otherwise carry
+     the target into the map; regression without the matching term does not encode the target at all);
   3. top-down 3D = masked average of the input views' features (the latent map);
      bottom-up 3D = the target view's own features;
   4. top-down 2D = the map rendered into the target camera by the projector (at `render_scale` of
@@ -11,7 +13,9 @@ One step, all at one time step t of each record (B×T×V views):
   5. losses: contrastive — 0.1·margin2D + 1.0·margin3D + 0.001·(L2 2D + L2 3D), sampled only where
      the target is observed (2D: pixels with depth whose point is inside the grid; 3D: voxels the
      target's rays reach — its occupied ∪ free voxels); regression — L1 between the RGB rendered from
-     the map (E = 3) and the target image (downsampled to the render size).
+     the map (E = 3) and the target image (downsampled to the render size), over the same valid pixels
+     as the 2D contrastive term (as the authors' code: sky and what lies beyond the grid are in no input
+     view's volume, ~28 % of the pixels at small).
      Both objectives also train the occupancy head on the map, with labels from all V views
      (occupied = voxelised points, free = ray traversal), class-balanced.
 """
@@ -168,8 +172,14 @@ class PretrainTask(nn.Module):
         if offset != (0, 0, 0):  # the target view lifted into the moved grid (PretrainConfig.shift_positives)
             volume = torch.cat([volume[:, :target], shift_voxels(volume[:, target], offset)[:, None],
                                 volume[:, target + 1:]], dim=1)         # B×V×4×Z×Y×X
-        feats = self.mapper.encode_volumes(volume)                     # B×V×F×Z×Y×X
-        top3d = masked_average(feats[:, inputs], in_view[:, inputs])  # B×F×Z×Y×X
+        # The input views and the target in separate encoder passes: in training mode BatchNorm normalises
+        # by its batch's statistics, so one pass over all V views would pass the held-out target's
+        # statistics (its colours, for regression) into the map it is predicted from. The target's own
+        # features are needed only by the contrastive terms and the matching term.
+        top3d = masked_average(self.mapper.encode_volumes(volume[:, inputs]), in_view[:, inputs])  # B×F×Z×Y×X
+        needs_target = self.cfg.objective == "contrastive" or self.cfg.coeff_match > 0
+        target_feats = (self.mapper.encode_volumes(volume[:, target:target + 1])[:, 0]
+                        if needs_target else None)                      # B×F×Z×Y×X
         free = self._free_space(depth, pix_T_cam, cam_T_ref)         # B×V×1×Z×Y×X
 
         logits = self.occupancy(top3d)                                 # B×1×Z×Y×X
@@ -183,16 +193,17 @@ class PretrainTask(nn.Module):
         Hr, Wr = (math.ceil(H / 2), math.ceil(W / 2)) if self.cfg.render_scale == 0.5 else (H, W)
         pix_render = scale_intrinsics(pix_target, Wr / W, Hr / H)
         top2d = self.projector(top3d, pix_render, cam_target, Hr, Wr)  # B×E×Hr×Wr
+        # pixels the map can know: a depth return inside the grid (both objectives score only these)
+        valid2d = self._valid_pixels(depth[:, target], pix_target, cam_target, (Hr, Wr))  # B×1×Hr×Wr
 
         if self.cfg.objective == "contrastive":
-            bottom3d = feats[:, target]                                # B×F×Z×Y×X
+            bottom3d = target_feats                                    # B×F×Z×Y×X
             valid3d = torch.maximum(occupied[:, target], free[:, target])  # B×1×Z×Y×X
             if offset != (0, 0, 0):  # back onto the unshifted grid; voxels whose match left the grid are invalid
                 back = tuple(-o for o in offset)
                 bottom3d = shift_voxels(bottom3d, back)
                 valid3d = valid3d * shift_voxels(torch.ones_like(valid3d), back)
             bottom2d = self.net2d(rgb_target)                          # B×E×Hr×Wr
-            valid2d = self._valid_pixels(depth[:, target], pix_target, cam_target, (Hr, Wr))
             out["loss_3d"] = view_contrastive_loss(top3d, bottom3d, valid3d, self.cfg.contrastive, self._generator)
             out["loss_2d"] = view_contrastive_loss(top2d, bottom2d, valid2d, self.cfg.contrastive, self._generator)
             out["loss_l2_3d"] = dense_l2(top3d, bottom3d, valid3d)
@@ -209,10 +220,11 @@ class PretrainTask(nn.Module):
                 view_loss = view_loss + self.cfg.coeff_local_negatives * out["loss_local_neg"]
         else:
             target_small = F.interpolate(rgb_target, size=(Hr, Wr), mode="area")  # B×3×Hr×Wr
-            out["rgb_l1"] = rgb_l1(top2d + 0.5, target_small)  # the head predicts centred colour
+            # the head predicts centred colour; sky and what lies beyond the grid are not the map's to know
+            out["rgb_l1"] = rgb_l1(top2d + 0.5, target_small, valid2d)
             view_loss = self.cfg.coeff_rgb * out["rgb_l1"]
         if self.cfg.coeff_match > 0:  # either objective: it trains the encoder only, on one view
-            out["loss_match"], out["match_hit"] = self._local_matching(volume[:, target], feats[:, target])
+            out["loss_match"], out["match_hit"] = self._local_matching(volume[:, target], target_feats)
             view_loss = view_loss + self.cfg.coeff_match * out["loss_match"]
 
         loss = view_loss + self.cfg.coeff_occ * out["loss_occ"]

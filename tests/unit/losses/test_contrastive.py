@@ -88,12 +88,42 @@ def test_view_contrastive_loss_matches_reference_and_samples_only_valid():
     emb, labels = [], []
     for k, (r, c) in enumerate(zip(rows.tolist(), cols.tolist())):
         emb += [top.reshape(B, C, -1)[r, :, c], bot.reshape(B, C, -1)[r, :, c]]
-        labels += [k, k]
+        labels += [(r, c), (r, c)]   # one label per (example, position)
+    labels = [sorted(set(labels)).index(label) for label in labels]
     emb = torch.stack(emb)
     neg = sample_negatives(emb, torch.tensor(labels), generator=gen)
     partner = [i + 1 if i % 2 == 0 else i - 1 for i in range(len(labels))]
     slow = margin_loss(emb, emb[partner], emb[neg])
     assert fast.item() == pytest.approx(slow.item(), rel=1e-6)
+
+
+def test_a_position_drawn_twice_is_never_its_own_negative(monkeypatch):
+    # 3 valid positions and 16 samples: positions are drawn with replacement; a duplicate of the anchor's
+    # position (distance 0: the sampler's favourite) must not be its negative — that would push the
+    # positive pair apart
+    B, C, P = 1, 4, 12
+    top, bot = _unit(B, C, P, seed=3), _unit(B, C, P, seed=4)
+    valid = torch.zeros(B, 1, P)
+    valid[0, 0, [2, 5, 9]] = 1.0
+    cfg = ContrastiveConfig(samples=16)
+    seen = {}
+    original = sample_negatives
+
+    def spy(emb, labels, **kwargs):
+        seen["emb"], seen["labels"] = emb, labels
+        seen["neg"] = original(emb, labels, **kwargs)
+        return seen["neg"]
+
+    monkeypatch.setattr("core.losses.contrastive.sample_negatives", spy)
+    loss = view_contrastive_loss(top, bot, valid, cfg, torch.Generator().manual_seed(0))
+    assert torch.isfinite(loss)
+    labels, neg = seen["labels"], seen["neg"]
+    assert len(set(labels.tolist())) == 3                        # 3 positions, 32 embeddings
+    assert bool((labels[neg] != labels).all())                   # every negative is another position
+    # one valid position only: no second pair to be a negative, the loss is 0 with a gradient path
+    one = torch.zeros(B, 1, P)
+    one[0, 0, 4] = 1.0
+    assert view_contrastive_loss(top, bot, one, cfg).item() == 0.0
 
 
 def test_view_contrastive_loss_without_valid_positions_is_zero_with_gradient():

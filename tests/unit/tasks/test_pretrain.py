@@ -144,3 +144,54 @@ def test_shift_positives_off_draws_nothing(records):
     b.load_state_dict(a.state_dict())
     out_a, out_b = a(records_to_batch(records)), b(records_to_batch(records))
     assert float(out_a["loss"]) == float(out_b["loss"])
+
+
+def _projector_input(task, batch) -> torch.Tensor:
+    """The map the target view is rendered from (the projector's first input) in one training step."""
+    seen = []
+    handle = task.projector.register_forward_hook(lambda module, args, out: seen.append(args[0].detach().clone()))
+    try:
+        task(batch)
+    finally:
+        handle.remove()
+    return seen[0]
+
+
+@pytest.mark.parametrize("objective,options", [("contrastive", {}), ("regression", {}),
+                                               ("regression", {"coeff_match": 1.0})])
+def test_the_held_out_view_does_not_reach_the_map_it_is_predicted_from(records, objective, options):
+    # In training mode BatchNorm normalises by its batch: encoded with the input views, the target would
+    # pass its statistics into the map. Replacing the target view (same seed: same t and target) must leave
+    # the map the projector renders bit-identical.
+    batch = records_to_batch(records)
+    task = build_task("pretrain", FAST, objective=objective, seed=0, **options)
+    task.train()
+    t, target = task._randint(1), task._randint(batch["rgb"].shape[2])   # the draws of the next step
+    other = {k: v.clone() for k, v in batch.items()}
+    other["rgb"][:, t, target] = torch.rand_like(other["rgb"][:, t, target])
+    other["depth"][:, t, target] = other["depth"][:, t, target].flip(-1)
+    maps = []
+    for b in (batch, other):
+        torch.manual_seed(0)   # the same initial weights
+        task = build_task("pretrain", FAST, objective=objective, seed=0, **options)
+        task.train()
+        maps.append(_projector_input(task, b))
+    assert torch.equal(maps[0], maps[1])
+
+
+def test_regression_scores_only_the_pixels_the_map_can_know(records):
+    # colours where the target view has no depth return (sky) or sees beyond the grid are not in any input
+    # view's volume: the regression loss must not depend on them
+    batch = records_to_batch(records)
+    task = build_task("pretrain", FAST, objective="regression", seed=0)
+    t, target = task._randint(1), task._randint(batch["rgb"].shape[2])
+    other = {k: v.clone() for k, v in batch.items()}
+    other["depth"][:, t, target, :, : other["depth"].shape[-1] // 2] = 0.0    # the left half: no depth
+    losses = []
+    for rgb_left in (0.0, 1.0):
+        b = {k: v.clone() for k, v in other.items()}
+        b["rgb"][:, t, target, :, :, : b["rgb"].shape[-1] // 2] = rgb_left
+        torch.manual_seed(0)   # the same initial weights
+        task = build_task("pretrain", FAST, objective="regression", seed=0)
+        losses.append(task(b)["rgb_l1"])
+    assert torch.equal(losses[0], losses[1])
