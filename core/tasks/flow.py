@@ -14,7 +14,9 @@ Losses:
                (true flow average-pooled to the level), finest level weight 1, each coarser half;
                with probability `object_fraction` per step the motion instead moves one random block
                of F0 (object-sized, core.models.flow_synthetic.sample_object_motions) and leaves the
-               rest static — still self-supervised, at the scale of the objects real pairs contain;
+               rest static — still self-supervised, at the scale of the objects real pairs contain; the
+               place it left is empty for input volumes (as in a real pair) and keeps the old content
+               for feature maps (the background it hid);
                with probability `reproject_fraction` a rigid step's moved input is frame t itself
                re-unprojected with the motion (its depth points lifted with cam_T_ref·M⁻¹, motions from
                REPROJECT_RANGES: large, small and a jitter at the egomotion module's error scale) instead
@@ -194,7 +196,9 @@ class FlowTask(nn.Module):
         g = self.cfg.grid
         if float(torch.rand((), generator=self._generator)) < self.cfg.object_fraction:
             motion, block = sample_object_motions(B, g, generator=self._generator, dtype=f0.dtype, device=f0.device)
-            moved, gt = move_block(f0, motion, block, g)  # only the block moved
+            # only the block moved; input volumes leave empty space behind it (as a real pair's do), feature
+            # maps the old content (standing in for the background the object occluded)
+            moved, gt = move_block(f0, motion, block, g, vacate=self.cfg.inputs == "volume")
         elif (self.cfg.reproject_fraction > 0
               and float(torch.rand((), generator=self._generator)) < self.cfg.reproject_fraction):
             motion, _ = sample_motions(B, generator=self._generator, dtype=f0.dtype, device=f0.device,
