@@ -2,7 +2,10 @@
 
 Per record and step t: the map is built from ONE view (`input_view`), and the labels are the union of
 that view's and the next view's (occupied = voxelised points, free = ray traversal; unlabelled voxels
-are ignored). Scores: accuracy for occupied / free / all labelled voxels and occupied IoU (definitions:
+are ignored), made the way the occupancy task makes its training labels and the mapper its input
+(core.tasks.occupancy_labels on the batch, float32): the synthetic ground lies exactly on a voxel face,
+and labels computed another way (ground_truth's float64 points) put it in the row above for some
+records — voxels the model's own input holds scored as free. Scores: accuracy for occupied / free / all labelled voxels and occupied IoU (definitions:
 core.eval.occupancy_metrics). `evaluate` scores one threshold; `scores_by_threshold` many from one pass of
 the model, and `balanced_threshold` picks among them the one whose worse class accuracy is highest;
 `choose_balanced_threshold` does so on held-out records with each of their views as the input in turn
@@ -17,10 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from core.data.ground_truth import gt_free, gt_occupancy
+from core.data.ground_truth import gt_occupancy
 from core.errors import ConfigError
 from core.eval.occupancy_metrics import add_counts, occupancy_counts, occupancy_scores
 from core.eval.protocols.inputs import record_batch
+from core.tasks.occupancy_labels import occupancy_labels
 from core.tasks.poses import cam_T_ref
 
 NEEDS = ("mapper", "occupancy")
@@ -54,8 +58,8 @@ def _frames(bundle, records, input_views: Sequence[int] | None, device):
                 features = mapper(batch["rgb"][:, t][:, v], batch["depth"][:, t][:, v], batch["pix_T_cam"][:, v],
                                   cam[:, v])
                 prob = head.probabilities(features)  # 1×1×Z×Y×X
-                occ = gt_occupancy(record, t, grid, label_views)[None].to(device) > 0.5
-                free = gt_free(record, t, grid, label_views)[None].to(device) > 0.5
+                occ, free = occupancy_labels(batch["depth"][:, t][:, label_views],
+                                             batch["pix_T_cam"][:, label_views], cam[:, label_views], grid)
                 yield record, t, prob, occ, free
 
 

@@ -74,3 +74,28 @@ def test_every_view_scores_pool_the_voxels_of_each_single_view_evaluation():
     every = scores_by_threshold(bundle, records, input_views=None, device="cpu")
     threshold, at = choose_balanced_threshold(bundle, records, device="cpu")
     assert threshold == balanced_threshold(every) and at == every[threshold]
+
+
+def test_labels_hold_every_voxel_the_models_own_input_holds():
+    # the synthetic ground lies exactly on a voxel face: the test labels must put it where the mapper's input
+    # (and the occupancy task's training labels) put it — small records 3 and 4 had 8 and 11 input-occupied
+    # voxels labelled not occupied when the labels were computed from float64 points
+    from core.eval.protocols.inputs import record_batch
+    from core.eval.protocols.occupancy import _frames
+    from core.models.input_volume import input_volume
+    from core.tasks.poses import cam_T_ref
+
+    small = get_preset("small")
+    task = build_task("pretrain", small, objective="contrastive").eval()
+    modules = task.exported_modules()
+    bundle = Bundle(preset=small, modules={"mapper": modules["mapper"], "occupancy": modules["occupancy"]})
+    for seed in (3, 4):
+        record = generate_record(small, seed=seed, num_frames=1)
+        batch = record_batch(record, "cpu")
+        cam = cam_T_ref(batch, 0, 0)
+        volume, _ = input_volume(batch["rgb"][:, 0, 0], batch["depth"][:, 0, 0], batch["pix_T_cam"][:, 0], cam[:, 0],
+                                 small.grid)                                   # 1×4×Z×Y×X: view 0's input
+        (_, _, _, occupied, free), = list(_frames(bundle, [record], (0,), "cpu"))
+        in_input = volume[:, :1] > 0
+        assert int(in_input.sum()) > 1000
+        assert not bool((in_input & ~occupied).any()) and not bool((in_input & free).any())
