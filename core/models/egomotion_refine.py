@@ -39,6 +39,7 @@ from core.errors import check_shape
 from core.geometry import se3
 from core.geometry.grid import GridConfig, mem_T_ref, ref_T_mem, voxel_centers_mem, voxel_centers_ref
 from core.geometry.resample import check_volume_matches_grid, sample_volume_at
+from core.precision import full_precision
 
 
 def spatial_gradient(vol: torch.Tensor, voxel_size: float) -> torch.Tensor:
@@ -86,6 +87,7 @@ def alignment_jacobian(reference: torch.Tensor, grid: GridConfig,
     return torch.cat([rot, grad], dim=-1)  # B×C×N×6
 
 
+@full_precision  # poses, sampling positions and the normal equations: float32 under bf16 autocast (core.precision)
 def gauss_newton_refine(reference: torch.Tensor, query: torch.Tensor, estimate: torch.Tensor, grid: GridConfig,
                         *, iterations: int = 3, damping: float = 1e-3, confidence: torch.Tensor | None = None,
                         robust_scale: float = 0.0, max_step: tuple[float, float] | None = None,

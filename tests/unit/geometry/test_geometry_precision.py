@@ -52,3 +52,23 @@ def test_the_mappers_input_volume_is_the_same_under_autocast():
     assert want[:, 0].sum() > 100                                        # occupied voxels to get wrong
     torch.testing.assert_close(got, want)
     torch.testing.assert_close(got_in, want_in)
+
+
+def test_the_egomotion_modules_gauss_newton_stage_runs_in_float32_under_autocast(device):
+    # its poses, sampling positions and 6×6 normal equations in bf16 put the samples ~2 cm off at small and
+    # returned a bf16 pose whose rotation was not orthonormal to 1e-4
+    from core.geometry.grid import GridConfig
+    from core.models.egomotion_refine import gauss_newton_refine
+
+    grid = GridConfig(xmin=-8.0, xmax=8.0, ymin=-2.0, ymax=2.0, zmin=0.0, zmax=16.0, Z=16, Y=4, X=16)
+    torch.manual_seed(0)
+    reference = torch.nn.functional.avg_pool3d(torch.rand(1, 1, 16, 4, 16, device=device), 3, 1, 1)
+    query = torch.roll(reference, 1, dims=-1)                            # the scene one voxel along x
+    start = torch.eye(4, device=device)[None]
+    want, _ = gauss_newton_refine(reference, query, start, grid, iterations=3)
+    with torch.autocast(device.type, dtype=torch.bfloat16):
+        got, _ = gauss_newton_refine(reference, query, start, grid, iterations=3)
+        from_bf16, _ = gauss_newton_refine(reference.bfloat16(), query.bfloat16(), start, grid, iterations=1)
+    assert got.dtype == from_bf16.dtype == torch.float32               # bf16 features are upcast
+    torch.testing.assert_close(got, want)
+    assert bool(se3.is_rigid(got))
