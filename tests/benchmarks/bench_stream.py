@@ -179,7 +179,8 @@ def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
     load_after = os.getloadavg()
     final = json.loads(bridge_out.read_text().strip().splitlines()[-1])["final_status"]
     counts = final["cameras"].get("bench", {})
-    lines = [json.loads(x) for x in listen_out.read_text().splitlines() if x.strip().startswith("{")]
+    decoded = [json.loads(x) for x in listen_out.read_text().splitlines() if x.strip().startswith("{")]
+    lines = [d for d in decoded if "error" not in d]   # the listener prints undecodable messages as {"error": …}
     modelled = [d for d in lines if d["sequence"] != lines[0]["sequence"]] if lines else []
     e2e = np.array([d["end_to_end_ms"] for d in modelled])
     received_at = np.array([d["source_timestamp"] + d["end_to_end_ms"] / 1000.0 for d in lines])
@@ -192,7 +193,7 @@ def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
         "identity_holds": counts.get("received") == (counts.get("processed", 0) + counts.get("dropped", 0)
                                                       + counts.get("malformed", 0) + counts.get("processing_errors", 0)
                                                       + counts.get("pending", 0)),
-        "detections_received": len(lines),
+        "detections_received": len(lines), "undecodable_messages": len(decoded) - len(lines),
         "sustained_fps": round((len(lines) - 1) / span, 2) if len(lines) > 1 and span > 0 else None,
         "e2e_ms_p50": round(float(np.percentile(e2e, 50)), 1) if e2e.size else None,
         "e2e_ms_p99": round(float(np.percentile(e2e, 99)), 1) if e2e.size else None,
