@@ -23,7 +23,7 @@ class WorldConfig:
     # --- vehicles (the records' objects)
     max_objects: int = 8                               # K: rows of `boxes` (zero-padded)
     num_vehicles: tuple[int, int] = (3, 8)             # inclusive range, clipped to max_objects
-    moving_fraction: float = 0.5                       # chance that a vehicle drives (besides the first)
+    moving_fraction: float = 0.5                       # chance that each vehicle drives (~3 % of records have none)
     vehicle_length: tuple[float, float] = (3.5, 5.0)   # lx
     vehicle_height: tuple[float, float] = (1.4, 1.9)   # ly
     vehicle_width: tuple[float, float] = (1.6, 2.1)    # lz
