@@ -67,16 +67,13 @@ def run_training(config: TrainJobConfig, *, spec: TaskSpec = CORE_TASKS) -> RunS
     config.run_path.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     done = _finished_checkpoint(config)
-    if done is None:
-        _check_same_mode(config)
     if done is not None:  # rerun of a complete run: nothing to train, export again
         checkpoint_dir, state = done
         outcome = LoopOutcome(status="finished", step=state.step, start_step=state.step,
                               last_metrics=state.metrics)
-    elif config.workers == 0:
-        outcome, checkpoint_dir = _run_in_process(config, spec)
     else:
-        outcome, checkpoint_dir = _run_on_ray(config)
+        _check_same_mode(config)
+        outcome, checkpoint_dir = _run_in_process(config, spec) if config.workers == 0 else _run_on_ray(config)
     if outcome.status != "finished":
         raise TrainingError(outcome.message)
     if checkpoint_dir is None:  # nothing trained this time (already at --steps): use the newest
