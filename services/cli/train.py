@@ -70,7 +70,8 @@ def add_common_train_args(parser: argparse.ArgumentParser) -> None:
                      help="bf16: each forward under bfloat16 autocast on the run's device (CPU or CUDA); "
                           "weights, optimizer and geometry stay float32. Default fp32: on CPU a bf16 step "
                           "measured 0.87-0.99x the fp32 time at the small preset (within noise), so it "
-                          "buys little there, and on an H200 whole pretraining steps were slower in bf16 (README: Training)")
+                          "buys little there, and on an H200 whole pretraining steps were slower in bf16 "
+                          "(README: Training)")
     ray.add_argument("--max-failures", type=int, default=2,
                      help="restart the workers from the last checkpoint this many times (-1: always)")
     ray.add_argument("--object-store-mb", type=int, default=512,

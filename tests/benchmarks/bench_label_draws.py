@@ -14,9 +14,10 @@ that are not the benchmark's test set). With --pretrain-steps N each arm is firs
 fixed steps with the plan's pretraining options updated by --pretrain-options (e.g. '{"coeff_match": 0}'
 for the paper's objectives without the matching term) instead of reading the benchmark's pretraining.
 With --detector-steps N the detectors train N fixed steps instead of the plan's rule (is that rule long
-enough to converge? compare runs at several N). Resumable: OUT/results.jsonl keeps every finished (seed, arm, draw, frozen); a rerun skips them. Prints one JSON
-line per detector, then per seed each arm's mAP@0.5 by draw and the contrastive − regression difference
-per draw (mean and sd over draws).
+enough to converge? compare runs at several N). Resumable: OUT/results.jsonl keeps every finished
+(seed, arm, draw, frozen, detector steps); a rerun skips them. Prints one JSON line per detector, then
+per seed each arm's mAP@0.5 by draw and the contrastive − regression difference per draw (mean and sd
+over draws).
 
 Measured (session 17, the small report's work directory, 32 held-out records of data seed 7, on a lent
 H100): README "Label draws" and docs/findings.md ("Why three fail").

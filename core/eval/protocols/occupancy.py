@@ -1,15 +1,16 @@
 """Occupancy accuracy on labelled voxels (the paper's appendix protocol).
 
 Per record and step t: the map is built from ONE view (`input_view`), and the labels are the union of
-that view's and the next view's (occupied = voxelised points, free = ray traversal; unlabelled voxels
-are ignored), made the way the occupancy task makes its training labels and the mapper its input
+that view's and the next view's (occupied = voxelised points, free = ray traversal; unlabelled voxels are
+ignored), made the way the occupancy task makes its training labels and the mapper its input
 (core.tasks.occupancy_labels on the batch, float32): the synthetic ground lies exactly on a voxel face,
-and labels computed another way (ground_truth's float64 points) put it in the row above for some
-records — voxels the model's own input holds scored as free. Scores: accuracy for occupied / free / all labelled voxels and occupied IoU (definitions:
-core.eval.occupancy_metrics). `evaluate` scores one threshold; `scores_by_threshold` many from one pass of
-the model, and `balanced_threshold` picks among them the one whose worse class accuracy is highest;
-`choose_balanced_threshold` does so on held-out records with each of their views as the input in turn
-(bench paper chooses it on its validation records and scores the test records there).
+and labels computed another way (ground_truth's float64 points) put it in the row above for some records
+— voxels the model's own input holds scored as free. Scores: accuracy for occupied / free / all labelled
+voxels and occupied IoU (definitions: core.eval.occupancy_metrics). `evaluate` scores one threshold;
+`scores_by_threshold` many from one pass of the model, and `balanced_threshold` picks among them the one
+whose worse class accuracy is highest; `choose_balanced_threshold` does so on held-out records with each
+of their views as the input in turn (bench paper chooses it on its validation records and scores the test
+records there).
 """
 
 from __future__ import annotations
