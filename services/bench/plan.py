@@ -269,7 +269,7 @@ def _epochs(epochs: int, min_steps: int, max_steps: int) -> StageRule:
 # 0.827 / 0.833, 0.817 / 0.831 / 0.845 — contrastive still gaining 0.025-0.044 on every seed, regression
 # 0.001-0.012; the difference moved from -0.014 / -0.021 / -0.008 to +0.010 / +0.006 / +0.024 (per-draw sd
 # 0.024-0.044). Beyond 800 not measured. The protocol of `tests/benchmarks/bench_label_draws.py --pretrain-steps
-# 800 --frozen --draws 0 1 2 3 --detector-steps 200|800 --device cuda` (each 800-step detector continued the
+# 800 --frozen --draws 0 1 2 3 --detector-steps 200 800 --device cuda` (each 800-step detector continues the
 # 200-step one: constant learning rate, seeded per step, so the same as training 800 from the start).
 _PROFILES: dict[tuple[str, bool], dict] = {
     # tiny keeps one label draw (its report is the quick-to-regenerate one; the draws are small's measured need).

@@ -2,7 +2,7 @@
 
     python tests/benchmarks/bench_label_draws.py --work REPORT_DIR/work --heldout DIR --out OUT
         [--seeds 0 1 2] [--arms contrastive regression] [--draws 0 1 2 3 4 5 6 7] [--budget 2]
-        [--pretrain-steps N --pretrain-options JSON] [--frozen] [--detector-steps N]
+        [--pretrain-steps N --pretrain-options JSON] [--frozen] [--detector-steps N [N ...]]
         [--device cpu|cuda] [--threads 1]
 
 For each seed of a `bench paper` work directory and each pretraining arm, trains the fine-tuned detector
@@ -14,8 +14,10 @@ that are not the benchmark's test set). With --pretrain-steps N each arm is firs
 fixed steps with the plan's pretraining options updated by --pretrain-options (e.g. '{"coeff_match": 0}'
 for the paper's objectives without the matching term) instead of reading the benchmark's pretraining.
 With --detector-steps N the detectors train N fixed steps instead of the plan's rule (is that rule long
-enough to converge? compare runs at several N). Resumable: OUT/results.jsonl keeps every finished
-(seed, arm, draw, frozen, detector steps); a rerun skips them. Prints one JSON line per detector, then
+enough to converge?); with several lengths (ascending) each detector is scored at every one of them, one
+run continued from the last (the learning rate is constant and every step seeded from (seed, step), so
+that is the same as training each length from the start). Resumable: OUT/results.jsonl keeps every
+finished (seed, arm, draw, frozen, detector steps); a rerun skips them. Prints one JSON line per detector, then
 per seed each arm's mAP@0.5 by draw and the contrastive − regression difference per draw (mean and sd
 over draws).
 
@@ -60,8 +62,9 @@ def main() -> None:
     p.add_argument("--pretrain-options", type=json.loads, default={})
     p.add_argument("--frozen", action="store_true",
                    help="pretrained arms' detectors on frozen features (the paper's protocol); random stays end to end")
-    p.add_argument("--detector-steps", type=int, default=0,
-                   help="train each detector this many fixed steps instead of the plan's rule (0: the rule)")
+    p.add_argument("--detector-steps", type=int, nargs="+", default=[0],
+                   help="train each detector this many fixed steps instead of the plan's rule (0: the rule); "
+                        "several (ascending): score each, continuing one run")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="cpu")
     args = p.parse_args()
@@ -80,12 +83,14 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     results_path = args.out / "results.jsonl"
     rows = [json.loads(line) for line in results_path.read_text().splitlines()] if results_path.exists() else []
-    # rows of the other protocol or another detector length stay in the file
-    rows = [r for r in rows if r.get("frozen", False) == args.frozen
-            and r.get("detector_steps", 0) == args.detector_steps]
-    detector_rule = StageRule.fixed(args.detector_steps) if args.detector_steps else config.rules.detector
-    steps_suffix = f"_s{args.detector_steps}" if args.detector_steps else ""
-    done = {(r["seed"], r["arm"], r["draw"]) for r in rows}
+    lengths = args.detector_steps
+    if len(lengths) > 1 and (0 in lengths or lengths != sorted(set(lengths))):
+        p.error("--detector-steps: several lengths must be positive and ascending")
+    # rows of the other protocol or other detector lengths stay in the file
+    rows = [r for r in rows if r.get("frozen", False) == args.frozen and r.get("detector_steps", 0) in lengths]
+    # one length: its own run dir (as before); several: one run continued through them
+    steps_suffix = ("" if lengths == [0] else f"_s{lengths[0]}") if len(lengths) == 1 else "_continued"
+    done = {(r["seed"], r["arm"], r["draw"], r.get("detector_steps", 0)) for r in rows}
 
     def pretrained(seed: int, arm: str) -> Path | None:
         if arm == "random":
@@ -100,45 +105,51 @@ def main() -> None:
     for draw in args.draws:          # draws outermost: a cut-off run still has every arm of its first draws
         for seed in args.seeds:
             for arm in args.arms:
-                if (seed, arm, draw) in done:
-                    continue
-                started = time.time()
                 frozen = args.frozen and arm != "random"
                 run_dir = args.out / f"seed{seed}_{arm}_d{draw}{'_frozen' if frozen else ''}{steps_suffix}"
-                labels = labelled_subset(train_dir, run_dir, budget, first=draw * budget)
-                bundle_dir = train_stage(
-                    config, task="detector", data_dir=labels, run_dir=run_dir, rule=detector_rule,
-                    seed=seed + 100 * draw, heldout_records=val_records,
-                    task_options=config.stage_options("detector", {"labels": None, "freeze_features": frozen}),
-                    init_bundle=pretrained(seed, arm), freeze=("mapper",) if frozen else (),
-                    batch_size=min(batch_size, budget),
-                    log=lambda _: None)
-                scores = evaluations.detection(load_bundle(bundle_dir, device), heldout, device=device)
-                row = {"seed": seed, "arm": arm, "draw": draw, "frozen": args.frozen,
-                       "detector_steps": args.detector_steps, "map": scores["map"],
-                       "detections": scores["detections"], "gt": scores["gt_boxes"],
-                       "seconds": round(time.time() - started, 1)}
-                rows.append(row)
-                with results_path.open("a") as f:
-                    f.write(json.dumps(row) + "\n")
-                print(json.dumps(row), flush=True)
+                for steps in lengths:
+                    if (seed, arm, draw, steps) in done:
+                        continue
+                    started = time.time()
+                    labels = labelled_subset(train_dir, run_dir, budget, first=draw * budget)
+                    bundle_dir = train_stage(
+                        config, task="detector", data_dir=labels, run_dir=run_dir,
+                        rule=StageRule.fixed(steps) if steps else config.rules.detector,
+                        seed=seed + 100 * draw, heldout_records=val_records,
+                        task_options=config.stage_options("detector", {"labels": None, "freeze_features": frozen}),
+                        init_bundle=pretrained(seed, arm), freeze=("mapper",) if frozen else (),
+                        batch_size=min(batch_size, budget),
+                        log=lambda _: None)
+                    scores = evaluations.detection(load_bundle(bundle_dir, device), heldout, device=device)
+                    row = {"seed": seed, "arm": arm, "draw": draw, "frozen": args.frozen,
+                           "detector_steps": steps, "map": scores["map"],
+                           "detections": scores["detections"], "gt": scores["gt_boxes"],
+                           "seconds": round(time.time() - started, 1)}
+                    rows.append(row)
+                    with results_path.open("a") as f:
+                        f.write(json.dumps(row) + "\n")
+                    print(json.dumps(row), flush=True)
     _summary(rows)
 
 
 def _summary(rows: list[dict]) -> None:
-    """Per seed: each arm's mAP@0.5 by draw, and the contrastive − regression difference per draw."""
-    for seed in sorted({r["seed"] for r in rows}):
-        by_arm = {arm: {r["draw"]: r["map"]["0.5"] for r in rows if r["seed"] == seed and r["arm"] == arm}
-                  for arm in sorted({r["arm"] for r in rows})}
-        for arm, maps in by_arm.items():
-            print(f"seed {seed} {arm:12s} " + " ".join(f"{maps[d]:.3f}" for d in sorted(maps))
-                  + f"  mean {statistics.mean(maps.values()):.3f}")
-        if {"contrastive", "regression"} <= set(by_arm):
-            draws = sorted(set(by_arm["contrastive"]) & set(by_arm["regression"]))
-            diff = [by_arm["contrastive"][d] - by_arm["regression"][d] for d in draws]
-            sd = statistics.stdev(diff) if len(diff) > 1 else float("nan")
-            print(f"seed {seed} contrastive - regression by draw " + " ".join(f"{x:+.3f}" for x in diff)
-                  + f"  mean {statistics.mean(diff):+.3f}, sd {sd:.3f} over {len(diff)} draws")
+    """Per detector length and seed: each arm's mAP@0.5 by draw, and the contrastive − regression difference
+    per draw."""
+    for steps in sorted({r.get("detector_steps", 0) for r in rows}):
+        at = [r for r in rows if r.get("detector_steps", 0) == steps]
+        print(f"detector steps: {steps or 'the plan rule'}")
+        for seed in sorted({r["seed"] for r in at}):
+            by_arm = {arm: {r["draw"]: r["map"]["0.5"] for r in at if r["seed"] == seed and r["arm"] == arm}
+                      for arm in sorted({r["arm"] for r in at})}
+            for arm, maps in by_arm.items():
+                print(f"seed {seed} {arm:12s} " + " ".join(f"{maps[d]:.3f}" for d in sorted(maps))
+                      + f"  mean {statistics.mean(maps.values()):.3f}")
+            if {"contrastive", "regression"} <= set(by_arm):
+                draws = sorted(set(by_arm["contrastive"]) & set(by_arm["regression"]))
+                diff = [by_arm["contrastive"][d] - by_arm["regression"][d] for d in draws]
+                sd = statistics.stdev(diff) if len(diff) > 1 else float("nan")
+                print(f"seed {seed} contrastive - regression by draw " + " ".join(f"{x:+.3f}" for x in diff)
+                      + f"  mean {statistics.mean(diff):+.3f}, sd {sd:.3f} over {len(diff)} draws")
 
 
 if __name__ == "__main__":
