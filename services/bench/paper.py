@@ -326,8 +326,7 @@ def _seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict
                                    task_options=config.stage_options(
                                        "detector", {"labels": None, "freeze_features": frozen}),
                                    init_bundle=pretrained.get(arm), freeze=("mapper",) if frozen else (),
-                                   batch_size=min(config.batch_size or preset.train.batch_size,
-                                                  config.budget_records(budget)))
+                                   batch_size=config.detector_batch_size(budget, preset.train.batch_size))
                 per_draw.append(evaluate(
                     f"detection/{name[len('detector_'):]}",
                     lambda b=bundle_dir: evaluations.detection(load_bundle(b, device), test_records, device=device),

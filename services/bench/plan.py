@@ -159,6 +159,11 @@ class BenchConfig:
                                        f"and mode one of {MODES}")
         if self.workers < 0:
             raise BenchConfigError(f"workers must be >= 0, got {self.workers}")
+        if few is not None and self.workers > few:
+            # refused here, not at the first detector stage hours into the run
+            raise BenchConfigError(f"workers {self.workers}: the smallest label budget labels {few} record(s) "
+                                   "and every Ray worker needs at least one; use at most that many workers or "
+                                   "a larger smallest budget")
         if self.precision not in ("fp32", "bf16"):
             raise BenchConfigError(f"precision must be fp32 or bf16, got {self.precision!r}")
         if self.retrieval_per_example < 1 or self.retrieval_cube < 1 or self.retrieval_cube % 2 == 0:
@@ -211,6 +216,12 @@ class BenchConfig:
     def budgets_sorted(self) -> tuple[int | None, ...]:
         """Label budgets, smallest first, `None` (all) last."""
         return tuple(sorted(self.label_budgets, key=lambda b: self.train_episodes + 1 if b is None else b))
+
+    def detector_batch_size(self, budget: int | None, preset_batch_size: int) -> int:
+        """Records per step and worker of a detector at `budget`: the run's batch size, no more than one
+        worker's share of the labelled records (Ray Train shards them across the workers; every worker
+        needs one full batch)."""
+        return min(self.batch_size or preset_batch_size, self.budget_records(budget) // max(1, self.workers))
 
     def budget_records(self, budget: int | None) -> int:
         """How many records a budget labels."""

@@ -74,7 +74,7 @@ def main() -> None:
     config = BenchConfig.from_dict(json.loads((args.work / "plan.json").read_text()))
     config = dataclasses.replace(config, device=str(device))
     budget = args.budget or config.budgets_sorted[0]
-    batch_size = config.batch_size or get_preset(config.preset).train.batch_size   # as the benchmark's detectors
+    batch_size = config.detector_batch_size(budget, get_preset(config.preset).train.batch_size)  # as the benchmark's
     train_dir = args.work / "data" / "train"
     held = ShardDataset(args.heldout)
     heldout = [held[i] for i in range(min(len(held), args.max_heldout or len(held)))]
@@ -118,7 +118,7 @@ def main() -> None:
                         seed=seed + 100 * draw, heldout_records=val_records,
                         task_options=config.stage_options("detector", {"labels": None, "freeze_features": frozen}),
                         init_bundle=pretrained(seed, arm), freeze=("mapper",) if frozen else (),
-                        batch_size=min(batch_size, budget),
+                        batch_size=batch_size,
                         log=lambda _: None)
                     scores = evaluations.detection(load_bundle(bundle_dir, device), heldout, device=device)
                     row = {"seed": seed, "arm": arm, "draw": draw, "frozen": args.frozen,

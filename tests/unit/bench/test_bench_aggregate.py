@@ -172,3 +172,24 @@ def test_label_draws_travel_with_the_plan_and_an_earlier_plan_means_one(tmp_path
     path.write_text(json.dumps(old))
     with pytest.raises(BenchConfigError, match="label_draws"):
         _check_same_plan(path, two)
+
+
+def test_ray_workers_share_each_detectors_labels_and_never_outnumber_them():
+    """With N Ray workers a detector's labelled records are sharded N ways, so its per-worker batch is at
+    most one share (2 labels on 2 workers: 1 each; the run-wide batch stays min(batch, labels)); more
+    workers than the smallest budget's records are refused when the plan is made, not at its first
+    detector stage after the pretraining."""
+    preset_batch = 2                          # the small preset's
+    in_process, two = plan_for("small"), plan_for("small", workers=2)
+    three = plan_for("small", workers=3, label_budgets=(4, 8, None))
+    # the slow obvious rule: the largest batch b <= preset_batch with b * workers <= labelled records
+    for plan in (in_process, two, three):
+        for budget in plan.label_budgets:
+            records = plan.budget_records(budget)
+            workers = max(1, plan.workers)
+            expected = max(b for b in range(1, preset_batch + 1) if b * workers <= records)
+            assert plan.detector_batch_size(budget, preset_batch) == expected, (plan.workers, budget)
+    assert in_process.detector_batch_size(2, preset_batch) == 2 and two.detector_batch_size(2, preset_batch) == 1
+    assert plan_for("small", workers=2, batch_size=4).detector_batch_size(8, preset_batch) == 4
+    with pytest.raises(BenchConfigError, match="workers 3: the smallest label budget labels 2 record"):
+        plan_for("small", workers=3, label_budgets=(2, None))

@@ -60,8 +60,13 @@ def test_every_stage_has_a_digest_and_an_unchanged_plan_changes_nothing(plan, tm
     assert {n for n in digests if n.startswith("seed0/") and "/eval/" not in n} == {f"seed0/{t}" for t in trained}
     assert len(set(digests.values())) == len(digests)  # no two stages alike
     assert changed_stages(plan, plan, tmp_path) == []
-    # seeds, workers and device are no part of a stage's identity
-    assert changed_stages(plan, replace(plan, workers=2, device="cuda"), tmp_path) == []
+    # the device is no part of a stage's identity
+    assert changed_stages(plan, replace(plan, device="cuda"), tmp_path) == []
+    # nor are the Ray workers, but for the detectors whose labels they must share: 2 labels on 2 workers
+    # train one record per worker and step (BatchNorm sees one), so those stages and their scores change
+    assert sorted(changed_stages(plan, replace(plan, workers=2), tmp_path)) == sorted(
+        f"seed0/{prefix}{arm}_{mode}_L2{draw}" for prefix in ("detector_", "eval/detection/")
+        for arm, mode in plan.detector_variants for draw in ("", "_draw1"))
 
 
 def test_a_feature_flow_option_touches_the_arms_flow_and_what_reads_it(plan, tmp_path):
