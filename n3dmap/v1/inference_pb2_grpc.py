@@ -116,8 +116,9 @@ class InferenceServicer:
         frame and this one, as MovingObjects computes them (the first frame of a camera yields empty
         Detections), with the zenoh bridge's rules: a frame whose sequence number is not past its camera's
         last one (a duplicate or out of order) is dropped without an answer; the previous frame's encoding is
-        reused; the interval is the timestamps' difference (sequences × --frame-dt when both are 0). A frame
-        that fails validation, or whose timestamp is not after its camera's previous one, ends the stream
+        reused; the interval is the capture times' difference when both frames carry one, else the
+        timestamps' (sequences × --frame-dt when both are 0). A frame that fails validation, or whose
+        capture time or timestamp is not after its camera's previous one, ends the stream
         with INVALID_ARGUMENT naming the field.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)

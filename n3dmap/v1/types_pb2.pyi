@@ -25,7 +25,7 @@ class Image(_message.Message):
     def __init__(self, png: _Optional[bytes] = ..., array: _Optional[_Union[Tensor, _Mapping]] = ...) -> None: ...
 
 class Frame(_message.Message):
-    __slots__ = ("rgb", "depth", "pix_T_cam", "world_T_cam", "camera_id", "sequence", "timestamp", "scene_start")
+    __slots__ = ("rgb", "depth", "pix_T_cam", "world_T_cam", "camera_id", "sequence", "timestamp", "scene_start", "capture_time")
     RGB_FIELD_NUMBER: _ClassVar[int]
     DEPTH_FIELD_NUMBER: _ClassVar[int]
     PIX_T_CAM_FIELD_NUMBER: _ClassVar[int]
@@ -34,6 +34,7 @@ class Frame(_message.Message):
     SEQUENCE_FIELD_NUMBER: _ClassVar[int]
     TIMESTAMP_FIELD_NUMBER: _ClassVar[int]
     SCENE_START_FIELD_NUMBER: _ClassVar[int]
+    CAPTURE_TIME_FIELD_NUMBER: _ClassVar[int]
     rgb: Image
     depth: Image
     pix_T_cam: Tensor
@@ -42,7 +43,8 @@ class Frame(_message.Message):
     sequence: int
     timestamp: float
     scene_start: bool
-    def __init__(self, rgb: _Optional[_Union[Image, _Mapping]] = ..., depth: _Optional[_Union[Image, _Mapping]] = ..., pix_T_cam: _Optional[_Union[Tensor, _Mapping]] = ..., world_T_cam: _Optional[_Union[Tensor, _Mapping]] = ..., camera_id: _Optional[str] = ..., sequence: _Optional[int] = ..., timestamp: _Optional[float] = ..., scene_start: _Optional[bool] = ...) -> None: ...
+    capture_time: float
+    def __init__(self, rgb: _Optional[_Union[Image, _Mapping]] = ..., depth: _Optional[_Union[Image, _Mapping]] = ..., pix_T_cam: _Optional[_Union[Tensor, _Mapping]] = ..., world_T_cam: _Optional[_Union[Tensor, _Mapping]] = ..., camera_id: _Optional[str] = ..., sequence: _Optional[int] = ..., timestamp: _Optional[float] = ..., scene_start: _Optional[bool] = ..., capture_time: _Optional[float] = ...) -> None: ...
 
 class Box3D(_message.Message):
     __slots__ = ("x", "y", "z", "lx", "ly", "lz", "yaw", "frame", "score", "label", "vx", "vy", "vz")

@@ -80,6 +80,11 @@ def register(subparsers) -> None:
     camera.add_argument("--moving-ego", action="store_true", help="synthetic: the ego (and camera) moves")
     camera.add_argument("--view", type=non_negative_int, default=0, help="dataset: which view of each record to publish")
     camera.add_argument("--loop", action="store_true", help="dataset: start over at the end")
+    camera.add_argument("--capture-dt", type=positive_float, default=None, metavar="S",
+                        help="dataset: seconds between a record's frames when they were captured, sent as each "
+                             "frame's capture_time so that motion is measured in capture time whatever --rate "
+                             "replays it at (default: the synthetic world's step for a generated dataset, else "
+                             "none: motion is then timed by when frames are sent)")
     camera.add_argument("--encoding", choices=("raw", "png"), default="raw", help="image encoding (default raw)")
     camera.add_argument("--wait-for-bridge", type=non_negative_float, default=10.0, metavar="S",
                         help="wait up to S seconds for a bridge before the first frame")
@@ -196,7 +201,7 @@ def _run_camera(args: argparse.Namespace) -> int:
         frames = synthetic_frames(preset_name=args.preset, seed=args.seed, frames_per_episode=args.episode_frames,
                                   moving_ego=args.moving_ego)
     else:
-        frames = dataset_frames(args.data, view=args.view, loop=args.loop)
+        frames = dataset_frames(args.data, view=args.view, loop=args.loop, capture_dt=args.capture_dt)
     stop = _stop_event()
     sent = publish_frames(_until(frames, stop), camera_id=args.camera_id, zenoh_options=options, rate_hz=args.rate,
                           max_frames=args.frames, encoding=args.encoding, wait_for_bridge_s=args.wait_for_bridge)

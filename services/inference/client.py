@@ -36,6 +36,7 @@ class Frames:
     camera_id: str = ""
     sequence: int = 0
     timestamp: float = 0.0
+    capture_time: float = 0.0      # when the scene was seen (0: not given); times motion when both have one
 
     def batched(self) -> "Frames":
         """The same views with the leading V axis present."""
@@ -44,7 +45,7 @@ class Frames:
         if rgb.ndim == 3:
             rgb, depth, K = rgb[None], depth[None], K[None]                 # 1×H×W×3, 1×H×W, 1×4×4
             pose = None if pose is None else pose[None]                    # 1×4×4
-        return Frames(rgb, depth, K, pose, self.camera_id, self.sequence, self.timestamp)
+        return Frames(rgb, depth, K, pose, self.camera_id, self.sequence, self.timestamp, self.capture_time)
 
 
 class ServiceCallError(Exception):
@@ -99,7 +100,8 @@ class RestClient:
             images = {"rgb": {"array": _tensor_json(rgb)}, "depth": {"array": _tensor_json(depth)}}
         return {**images, "pix_T_cam": np.asarray(f.pix_T_cam[v], np.float64).tolist(),
                 "world_T_cam": None if f.world_T_cam is None else np.asarray(f.world_T_cam[v], np.float64).tolist(),
-                "camera_id": f.camera_id, "sequence": int(f.sequence), "timestamp": float(f.timestamp)}
+                "camera_id": f.camera_id, "sequence": int(f.sequence), "timestamp": float(f.timestamp),
+                "capture_time": float(f.capture_time)}
 
     def _views_json(self, frames: Frames) -> list[dict]:
         f = frames.batched()
@@ -113,6 +115,7 @@ class RestClient:
         if f.world_T_cam is not None:
             out[f"world_T_cam{suffix}"] = np.asarray(f.world_T_cam, np.float32)
         out[f"timestamp{suffix}"], out[f"sequence{suffix}"] = np.float64(f.timestamp), np.uint64(f.sequence)
+        out[f"capture_time{suffix}"] = np.float64(f.capture_time)
         return out
 
     def _post(self, path: str, *, json_body: dict, npz_arrays: dict, params: dict | None = None,
@@ -222,7 +225,8 @@ def frame_proto(f: Frames, v: int, *, png: bool = False):
     return types_pb2.Frame(
         rgb=rgb_img, depth=depth_img, pix_T_cam=codecs.numpy_to_tensor(np.asarray(f.pix_T_cam[v], np.float32)),
         world_T_cam=None if f.world_T_cam is None else codecs.numpy_to_tensor(np.asarray(f.world_T_cam[v], np.float32)),
-        camera_id=f.camera_id, sequence=int(f.sequence), timestamp=float(f.timestamp))
+        camera_id=f.camera_id, sequence=int(f.sequence), timestamp=float(f.timestamp),
+        capture_time=float(f.capture_time))
 
 
 def _info(msg) -> dict:

@@ -46,8 +46,12 @@ class FrameJSON(BaseModel):
     world_T_cam: Matrix4 | None = None
     camera_id: str = Field("", max_length=256)
     sequence: int = Field(0, ge=0, le=2**63 - 1)
-    timestamp: float = Field(0.0, description="capture time, seconds on the source's clock; 0 = none given. "
-                                              "Moving objects take their pair's interval from it")
+    timestamp: float = Field(0.0, description="seconds on the source's clock; 0 = none given. Moving objects "
+                                              "take their pair's interval from it unless both frames carry a "
+                                              "capture_time")
+    capture_time: float = Field(0.0, ge=0.0, description="when the scene was seen, seconds on the capture clock; "
+                                                        "0 = none given. When both frames of a pair carry one, "
+                                                        "their interval is its difference (a replayed recording)")
 
 
 Views = list[FrameJSON]
@@ -80,9 +84,10 @@ class DetectRequestJSON(BaseModel):
 
 
 class MovingObjectsRequestJSON(BaseModel):
-    """Velocities are m/s over the frames' clock: views1's timestamp minus views0's (it must be later); when
-    both are 0, (views1 sequence − views0 sequence, at least 1) × the server's --frame-dt. A bundle without an
-    egomotion module stabilises with the poses, which must then be given."""
+    """Velocities are m/s over the frames' clock: views1's capture_time minus views0's when both carry one,
+    else views1's timestamp minus views0's (it must be later); when both are 0, (views1 sequence − views0
+    sequence, at least 1) × the server's --frame-dt. A bundle without an egomotion module stabilises with the
+    poses, which must then be given."""
 
     views0: Views = Field(min_length=1, max_length=MAX_VIEWS, description="views at t0; `ref` = views0[0]")
     views1: Views = Field(min_length=1, max_length=MAX_VIEWS, description="views at t1, same layout")

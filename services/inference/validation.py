@@ -34,6 +34,7 @@ class View:
     timestamp: float = 0.0
     posed: bool = True
     scene_start: bool = False  # the source cut to a new scene: not paired with the camera's previous frame
+    capture_time: float = 0.0  # seconds on the capture clock (0: not given; then `timestamp` times motion)
 
 
 @dataclass(frozen=True)
@@ -50,6 +51,7 @@ class Views:
     sequence: int = 0
     timestamp: float = 0.0
     posed: bool = True
+    capture_time: float = 0.0
 
     @property
     def shape_key(self) -> tuple[int, int, int]:
@@ -136,7 +138,8 @@ def _check_side(H: int, W: int, field: str) -> None:
 
 
 def make_view(*, rgb: np.ndarray, depth: np.ndarray, pix_T_cam, world_T_cam=None, field: str,
-              camera_id: str = "", sequence: int = 0, timestamp: float = 0.0, scene_start: bool = False) -> View:
+              camera_id: str = "", sequence: int = 0, timestamp: float = 0.0, scene_start: bool = False,
+              capture_time: float = 0.0) -> View:
     """Validate one view's arrays; `field` prefixes the names in errors (e.g. `views[0]`)."""
     rgb = check_rgb(rgb, f"{field}.rgb")
     depth = check_depth(depth, f"{field}.depth")
@@ -148,9 +151,11 @@ def make_view(*, rgb: np.ndarray, depth: np.ndarray, pix_T_cam, world_T_cam=None
     world_T_cam = check_pose(world_T_cam, f"{field}.world_T_cam") if posed else np.eye(4, dtype=np.float32)
     if not np.isfinite(timestamp):
         raise InvalidInput(f"{field}.timestamp", "must be finite")
+    if not (np.isfinite(capture_time) and capture_time >= 0):
+        raise InvalidInput(f"{field}.capture_time", f"must be finite seconds >= 0 (0: not given), got {capture_time!r}")
     return View(rgb=rgb, depth=depth, pix_T_cam=pix_T_cam, world_T_cam=world_T_cam,
                 camera_id=camera_id, sequence=int(sequence), timestamp=float(timestamp), posed=posed,
-                scene_start=bool(scene_start))
+                scene_start=bool(scene_start), capture_time=float(capture_time))
 
 
 def stack_views(views: list[View], field: str) -> Views:
@@ -170,7 +175,8 @@ def stack_views(views: list[View], field: str) -> Views:
                  pix_T_cam=np.stack([v.pix_T_cam for v in views]),  # V×4×4
                  world_T_cam=np.stack([v.world_T_cam for v in views]),
                  camera_ids=[v.camera_id for v in views], sequence=views[0].sequence,
-                 timestamp=max(v.timestamp for v in views), posed=all(v.posed for v in views))
+                 timestamp=max(v.timestamp for v in views), posed=all(v.posed for v in views),
+                 capture_time=max(v.capture_time for v in views))
 
 
 def check_pair(views0: Views, views1: Views, field1: str) -> None:
@@ -181,9 +187,17 @@ def check_pair(views0: Views, views1: Views, field1: str) -> None:
 
 
 def pair_interval(views0: Views, views1: Views, *, frame_dt: float, field1: str) -> float:
-    """Seconds from the first instant of a pair to the second: the difference of their timestamps, or —
-    when neither carries one (both 0, the wire's default) — the difference of their sequence numbers (at
-    least 1) times `frame_dt`. Timestamps that do not increase are refused, naming `field1`.timestamp."""
+    """Seconds from the first instant of a pair to the second: the difference of their capture times when
+    both carry one (a recording replayed at another rate than it was captured at moves in capture time);
+    else of their timestamps; when neither carries one (both 0, the wire's default), the difference of
+    their sequence numbers (at least 1) times `frame_dt`. A clock that does not advance is refused, naming
+    `field1`.capture_time or `field1`.timestamp."""
+    c0, c1 = views0.capture_time, views1.capture_time
+    if c0 > 0.0 and c1 > 0.0:
+        if not c1 > c0:
+            raise InvalidInput(f"{field1}.capture_time", f"{c1!r} s is not after the first instant's {c0!r} s: "
+                                                         "the capture clock must advance")
+        return c1 - c0
     t0, t1 = views0.timestamp, views1.timestamp
     if t0 == 0.0 and t1 == 0.0:
         return max(1, views1.sequence - views0.sequence) * frame_dt

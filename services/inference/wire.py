@@ -44,7 +44,8 @@ def views_from_json(frames, field: str) -> Views:
             rgb=_json_image(f.rgb, f"{at}.rgb", depth=False), depth=_json_image(f.depth, f"{at}.depth", depth=True),
             pix_T_cam=_json_matrix(f.pix_T_cam, f"{at}.pix_T_cam"),
             world_T_cam=None if f.world_T_cam is None else _json_matrix(f.world_T_cam, f"{at}.world_T_cam"),
-            field=at, camera_id=f.camera_id, sequence=f.sequence, timestamp=f.timestamp))
+            field=at, camera_id=f.camera_id, sequence=f.sequence, timestamp=f.timestamp,
+            capture_time=f.capture_time))
     return stack_views(views, field)
 
 
@@ -70,7 +71,8 @@ def _npz_scalar(arrays: dict[str, np.ndarray], name: str, kind: str, default):
 def views_from_npz(arrays: dict[str, np.ndarray], suffix: str = "") -> Views:
     """`.npz` body -> Views. Keys: rgb{s} V×H×W×3 uint8, depth{s} V×H×W (float32 m | uint16 mm),
     pix_T_cam{s} V×4×4, world_T_cam{s} V×4×4 (optional for one view), and the optional scalars
-    timestamp{s} (seconds) and sequence{s} of the instant; `s` is "" for one instant, "0"/"1" for pairs."""
+    timestamp{s} and capture_time{s} (seconds) and sequence{s} of the instant; `s` is "" for one instant,
+    "0"/"1" for pairs."""
     names = {k: f"{k}{suffix}" for k in ("rgb", "depth", "pix_T_cam", "world_T_cam")}
     for k in ("rgb", "depth", "pix_T_cam"):
         if names[k] not in arrays:
@@ -87,9 +89,11 @@ def views_from_npz(arrays: dict[str, np.ndarray], suffix: str = "") -> Views:
         if arr is not None and (arr.ndim != ndim or arr.shape[0] != V):
             raise InvalidInput(name, f"must have {ndim} dims with V={V} first, got {list(arr.shape)}")
     timestamp = _npz_scalar(arrays, f"timestamp{suffix}", "f", 0.0)
+    capture_time = _npz_scalar(arrays, f"capture_time{suffix}", "f", 0.0)
     sequence = _npz_scalar(arrays, f"sequence{suffix}", "iu", 0)
     views = [make_view(rgb=rgb[v], depth=depth[v], pix_T_cam=K[v], world_T_cam=None if pose is None else pose[v],
-                       field=f"views{suffix}[{v}]", sequence=sequence, timestamp=timestamp) for v in range(V)]
+                       field=f"views{suffix}[{v}]", sequence=sequence, timestamp=timestamp,
+                       capture_time=capture_time) for v in range(V)]
     return stack_views(views, f"views{suffix}")
 
 
@@ -115,7 +119,7 @@ def view_from_proto(frame: types_pb2.Frame, field: str) -> View:
         world_T_cam=(codecs.tensor_to_numpy(frame.world_T_cam, f"{field}.world_T_cam")
                      if frame.HasField("world_T_cam") else None),
         field=field, camera_id=frame.camera_id, sequence=frame.sequence, timestamp=frame.timestamp,
-        scene_start=frame.scene_start)
+        scene_start=frame.scene_start, capture_time=frame.capture_time)
 
 
 def views_from_proto(frames, field: str) -> Views:

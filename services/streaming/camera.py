@@ -26,11 +26,13 @@ from services.streaming.session import ZenohOptions, open_session
 log = logging.getLogger("n3dmap.camera")
 
 
-def encode_frame(frame: dict, *, camera_id: str, sequence: int, timestamp: float, encoding: str = "raw") -> bytes:
+def encode_frame(frame: dict, *, camera_id: str, sequence: int, timestamp: float, capture_time: float = 0.0,
+                 encoding: str = "raw") -> bytes:
     """A source frame dict (rgb H×W×3 uint8, depth H×W float32 m, pix_T_cam 4×4, world_T_cam 4×4, optional
-    scene_start: the source cut to a new scene here) → serialized `Frame`. `encoding`: "raw" (little-endian arrays, cheapest on one host) or "png"
+    scene_start: the source cut to a new scene here) → serialized `Frame`. `capture_time`: seconds on the
+    capture clock (0: not given). `encoding`: "raw" (little-endian arrays, cheapest on one host) or "png"
     (RGB PNG + uint16-millimetre depth PNG, smaller on a network)."""
-    msg = types_pb2.Frame(camera_id=camera_id, sequence=sequence, timestamp=timestamp,
+    msg = types_pb2.Frame(camera_id=camera_id, sequence=sequence, timestamp=timestamp, capture_time=capture_time,
                           scene_start=bool(frame.get("scene_start", False)))
     if encoding == "png":
         msg.rgb.png = encode_png_rgb(frame["rgb"])
@@ -50,6 +52,10 @@ def publish_frames(frames: Iterable[dict], *, camera_id: str, zenoh_options: Zen
                    on_sent=None) -> int:
     """Publish frames at `rate_hz` until the source ends or `max_frames` were sent; returns the count.
 
+    Each frame's `timestamp` is when it is sent; a source that knows when its frames were captured (a
+    frame's `capture_offset`, sources.py) also gets `capture_time`: the first frame's send time plus its
+    offset, so a recording replayed at another rate keeps its own clock for motion.
+
     Before the first frame it waits up to `wait_for_bridge_s` for a bridge's liveliness token, so
     a camera started together with its bridge does not publish into the void."""
     if rate_hz <= 0:
@@ -63,6 +69,7 @@ def publish_frames(frames: Iterable[dict], *, camera_id: str, zenoh_options: Zen
         pub = session.declare_publisher(keys.rgbd(camera_id), congestion_control=zenoh.CongestionControl.BLOCK)
         period = 1.0 / rate_hz
         next_at = time.monotonic()
+        capture_zero = None                  # wall time of capture offset 0
         iterator: Iterator[dict] = iter(frames)
         while max_frames is None or sent < max_frames:
             try:
@@ -76,8 +83,12 @@ def publish_frames(frames: Iterable[dict], *, camera_id: str, zenoh_options: Zen
                 # The source stalled (a synthetic episode being rendered): resume at the rate from
                 # now instead of bursting out the frames "missed" meanwhile, as a real camera would.
                 next_at = time.monotonic()
-            payload = encode_frame(frame, camera_id=camera_id, sequence=sent, timestamp=time.time(),
-                                   encoding=encoding)
+            now = time.time()
+            offset = frame.get("capture_offset")
+            if offset is not None and capture_zero is None:
+                capture_zero = now - offset
+            payload = encode_frame(frame, camera_id=camera_id, sequence=sent, timestamp=now,
+                                   capture_time=0.0 if offset is None else capture_zero + offset, encoding=encoding)
             pub.put(payload, attachment=attachment)
             if on_sent is not None:
                 on_sent(sent)

@@ -18,7 +18,7 @@ from __future__ import annotations
 STEP = "step"      # data preview: the record's time step t = 0..T-1
 PAIR = "pair"      # eval moving|flow: the evaluated pair (t, t+1), counted over the whole run
 FRAME = "frame"    # eval detection: the evaluated (record, t); stream view: the camera's frame sequence
-CAPTURE_TIME = "capture_time"  # stream view: the frame's source timestamp (a timestamp timeline)
+SOURCE_TIME = "source_time"  # stream view: the frame's source timestamp, when it was sent (a timestamp timeline)
 
 # -- dataset preview (n3dmap data preview --rerun), frame `world`
 WORLD = "world"

@@ -1,5 +1,5 @@
 """The live stream as a Rerun recording (`n3dmap stream view`): frames, detections and egomotion of one
-camera, on the `frame` timeline (the camera's sequence numbers) and the `capture_time` timeline (the
+camera, on the `frame` timeline (the camera's sequence numbers) and the `source_time` timeline (the
 frames' source timestamps), in `world` (entity paths in rerun_paths).
 
 - Each frame: the camera's pose world_T_cam (as the frame carries it), its Pinhole, RGB and depth
@@ -63,7 +63,7 @@ class StreamRecorder:
     def _at(self, sequence: int, timestamp: float | None) -> None:
         self.rec.set_time(paths.FRAME, sequence=int(sequence))
         if timestamp:
-            self.rec.set_time(paths.CAPTURE_TIME, timestamp=float(timestamp))
+            self.rec.set_time(paths.SOURCE_TIME, timestamp=float(timestamp))
 
     def log_frame(self, *, sequence: int, timestamp: float, rgb: np.ndarray, depth: np.ndarray,
                   pix_T_cam: np.ndarray, world_T_cam: np.ndarray | None) -> None:

@@ -163,7 +163,7 @@ def test_every_route_of_a_full_bundle_answers_as_core_pipeline(server, rest, grp
 def test_velocities_follow_the_frames_clock(server, rest, grpc_client, core_bundle):
     """The same pair stamped STEP and 2·STEP s apart answers what core.pipeline answers over those intervals
     (the speed thresholds and the velocities scale with the interval); unstamped (both 0), it spans
-    (sequence1 − sequence0) × --frame-dt (STEP on this server)."""
+    (sequence1 − sequence0) × --frame-dt (STEP on this server); with capture times, their interval."""
     import torch
 
     from core.pipeline import moving_objects
@@ -184,6 +184,10 @@ def test_velocities_follow_the_frames_clock(server, rest, grpc_client, core_bund
     f0.timestamp, f1.timestamp, f0.sequence, f1.sequence = 0.0, 0.0, 3, 5
     for client in (rest, grpc_client):
         assert_boxes(client.moving_objects(f0, f1), answers[2 * STEP])
+    # capture times, when both frames carry one, outrank the timestamps (a recording replayed slower)
+    f0.timestamp, f1.timestamp, f0.capture_time, f1.capture_time = 10.0, 10.0 + 2 * STEP, 50.0, 50.0 + STEP
+    for client in (rest, grpc_client):
+        assert_boxes(client.moving_objects(f0, f1), answers[STEP])
 
 
 @pytest.mark.parametrize("encoding,png", [("json", False), ("png", True)])

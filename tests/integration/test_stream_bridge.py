@@ -197,6 +197,7 @@ def test_detections_arrive_and_equal_the_pipeline(stack):
     from services.streaming.sources import synthetic_frames
     from core.presets import get_preset
     from core.synthetic import generate_record
+    from core.synthetic.config import default_world_config
 
     tmp, endpoint, net = stack["tmp"], stack["endpoint"], stack["net"]
     listener = StreamProcess(["listen", "--camera-id", "movers", "--json", "--connect", endpoint], tmp, "listen")
@@ -204,7 +205,9 @@ def test_detections_arrive_and_equal_the_pipeline(stack):
         wait_for(lambda: "subscribed" in listener.stderr(), 120, "the listener to subscribe")
         time.sleep(1.0)  # the subscription's declaration reaches the bridge before the first detections
         started = time.time()
-        camera = StreamProcess(camera_args("movers", endpoint, frames=6, seed=MOVERS_SEED), tmp, "camera_movers")
+        # replayed at 2 Hz, slower than the synthetic world's 5 Hz: motion must follow the capture clock
+        camera = StreamProcess(camera_args("movers", endpoint, frames=6, seed=MOVERS_SEED, rate=2.0), tmp,
+                               "camera_movers")
         assert camera.wait(180) == 0, camera.stderr()[-2000:]
         finished = time.time()
         sent = published(camera)
@@ -239,11 +242,16 @@ def test_detections_arrive_and_equal_the_pipeline(stack):
     record = generate_record(get_preset("tiny"), seed=MOVERS_SEED, num_views=1, num_frames=50)
     total_boxes = near_movers = 0
     torch.set_num_threads(1)
+    world_dt = default_world_config(get_preset("tiny")).dt
+    sent_span = lines[-1]["source_timestamp"] - lines[0]["source_timestamp"]
+    assert sent_span > 1.5 * (lines[-1]["sequence"] - lines[0]["sequence"]) * world_dt  # the clocks do differ
     for before, now in zip(lines, lines[1:]):
         pair = pair_tensors([views[before["sequence"]]], [views[now["sequence"]]], torch.device("cpu"))
         with torch.inference_mode():
-            # the pair spans the frames' own clock (the camera stamps each frame when it publishes it)
-            ref = moving_objects(bundle, **pair, dt=now["source_timestamp"] - before["source_timestamp"],
+            # the pair spans the frames' capture clock (the world's 0.2 s per frame), not the 0.5 s per frame
+            # of the replay that the timestamps (when the camera sent each frame) show
+            capture_dt = (now["sequence"] - before["sequence"]) * world_dt
+            ref = moving_objects(bundle, **pair, dt=capture_dt,
                                  config=MovingObjectsConfig(min_object_speed=OBJECT_SPEED))
         valid = ref["valid"][0]
         scores = ref["scores"][0][valid].numpy()

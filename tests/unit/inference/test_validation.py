@@ -94,8 +94,8 @@ def test_several_views_of_one_instant_each_need_their_pose():
     assert e.value.field == "views0[1].world_T_cam"
 
 
-def _stamped(timestamp, sequence=0):
-    return stack_views([_view(timestamp=timestamp, sequence=sequence)], "v")
+def _stamped(timestamp, sequence=0, capture_time=0.0):
+    return stack_views([_view(timestamp=timestamp, sequence=sequence, capture_time=capture_time)], "v")
 
 
 def test_pair_interval_reads_the_frames_clock():
@@ -112,6 +112,26 @@ def test_pair_interval_reads_the_frames_clock():
         assert e.value.field == "views1.timestamp"
 
 
+def test_pair_interval_prefers_the_capture_clock_when_both_frames_carry_it():
+    """A recording replayed at 2 Hz was captured at 5 Hz: its frames are sent 0.5 s apart (timestamps)
+    but the world in them moved 0.2 s (capture_time); motion is timed by the capture clock. One frame
+    without a capture time: the timestamps decide, as before the field existed."""
+    from services.inference.validation import pair_interval
+
+    replayed0, replayed1 = _stamped(100.0, 0, capture_time=50.0), _stamped(100.5, 1, capture_time=50.2)
+    assert pair_interval(replayed0, replayed1, frame_dt=0.1, field1="frame") == pytest.approx(0.2)
+    assert pair_interval(_stamped(100.0, 0), replayed1, frame_dt=0.1, field1="frame") == pytest.approx(0.5)
+    assert pair_interval(_stamped(0.0, 0, capture_time=50.0), _stamped(0.0, 4, capture_time=50.4), frame_dt=0.1,
+                         field1="frame") == pytest.approx(0.4)  # no timestamps: the capture clock still decides
+    with pytest.raises(InvalidInput) as e:  # timestamps advance, the capture clock does not
+        pair_interval(replayed0, _stamped(100.5, 1, capture_time=50.0), frame_dt=0.1, field1="frame")
+    assert e.value.field == "frame.capture_time"
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(InvalidInput) as e:
+            _view(capture_time=bad)
+        assert e.value.field.endswith(".capture_time")
+
+
 def test_npz_bodies_refuse_unposed_views_and_bad_scalars():
     from services.inference.wire import views_from_npz
 
@@ -121,11 +141,11 @@ def test_npz_bodies_refuse_unposed_views_and_bad_scalars():
         views_from_npz(body, "0")
     assert e.value.field == "world_T_cam0"
     posed = {**body, "world_T_cam0": np.stack([_rot_y(0.1), _rot_y(0.2)]).astype(np.float32),
-             "timestamp0": np.float64(1.5), "sequence0": np.uint64(7)}
+             "timestamp0": np.float64(1.5), "sequence0": np.uint64(7), "capture_time0": np.float64(0.4)}
     views = views_from_npz(posed, "0")
-    assert views.timestamp == 1.5 and views.sequence == 7 and views.posed
+    assert views.timestamp == 1.5 and views.sequence == 7 and views.posed and views.capture_time == 0.4
     for name, value in (("timestamp0", np.float64(np.nan)), ("timestamp0", np.zeros(2)), ("sequence0", np.int64(-1)),
-                        ("sequence0", np.float64(1.0))):
+                        ("sequence0", np.float64(1.0)), ("capture_time0", np.float64(np.inf))):
         with pytest.raises(InvalidInput) as e:
             views_from_npz({**posed, name: value}, "0")
         assert e.value.field == name, (name, value)
