@@ -98,9 +98,10 @@ def box_accuracy(preset: str, frames: int, lines: list[dict], ious=(0.25, 0.5)) 
     The true movers are those centred in the episode's own map grid (`gt_moving_boxes`, as the evaluation
     protocol); the bridge's grid sits elsewhere (the camera's frame, or levelled), so only published boxes
     centred in the episode's grid are scored — a right box beyond it would otherwise count as a false one
-    ("outside_grid" counts the others). Velocities and speed thresholds follow the frames' timestamps, the
-    replay clock: at --rate R a pair spans 1/R s while the synthetic world moved 0.2 s, so at 2 Hz the
-    bridge's speed thresholds are 2.5 × their m/s in world terms (README, "Live streams over zenoh")."""
+    ("outside_grid" counts the others). Velocities and speed thresholds follow the frames' capture times,
+    the synthetic world's 0.2 s per frame at any --rate (before session 22 they followed the replay clock:
+    at 2 Hz the bridge's speed thresholds were 2.5 × their m/s in world terms; README, "Live streams over
+    zenoh")."""
     from core.eval.iou3d import iou_3d_across_frames
     from core.eval.moving_protocol import gt_moving_boxes
     from core.presets import get_preset
