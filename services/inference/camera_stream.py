@@ -9,7 +9,7 @@ boxes in `ref` = the camera at the previous frame — with the previous frame's 
 `CameraState.extra`, keyed by its sequence number and the bundle version so that a hot reload or a reset
 never mixes stale tensors in. `prepare` makes that encoding while the transport waits for the next
 frame, which takes the map of the previous frame off the next frame's latency. The pair's interval comes
-from the frames' timestamps ((seq1 − seq0) × `frame_dt` only when neither carries one; see
+from the frames' capture times, else timestamps ((seq1 − seq0) × `frame_dt` only when neither is given; see
 routes.moving_interval). Answers equal the moving_objects route's for the same pair
 (tests/unit/streaming/test_stream_step.py).
 """
