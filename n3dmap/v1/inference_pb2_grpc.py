@@ -118,7 +118,7 @@ class InferenceServicer:
         last one (a duplicate or out of order) is dropped without an answer; the previous frame's encoding is
         reused; the interval is the capture times' difference when both frames carry one, else the
         timestamps' (sequences × --frame-dt when both are 0). A frame that fails validation, or whose
-        capture time or timestamp is not after its camera's previous one, ends the stream
+        clock so chosen is not after its camera's previous frame's, ends the stream
         with INVALID_ARGUMENT naming the field.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)

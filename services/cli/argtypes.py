@@ -14,8 +14,9 @@ DEFAULT_FRAME_DT = 0.2
 # = core.pipeline.moving_boxes.MovingObjectsConfig.min_object_speed (the same test keeps them equal).
 DEFAULT_MIN_OBJECT_SPEED = 1.0
 FRAME_DT_HELP = ("seconds between consecutive frames of a camera, used only for moving-object pairs whose frames "
-                 "carry no timestamps (both 0): the pair then spans (sequence1 − sequence0) × S. Otherwise the "
-                 "interval is the frames' timestamp difference (default %(default)s, the synthetic world's step)")
+                 "carry neither capture times nor timestamps (all 0): the pair then spans (sequence1 − sequence0) "
+                 "× S. Otherwise the interval is the frames' capture-time difference when both carry one, else "
+                 "their timestamp difference (default %(default)s, the synthetic world's step)")
 
 
 def _number(text: str, kind: type, what: str):

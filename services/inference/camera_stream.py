@@ -72,7 +72,7 @@ class MovingStream:
                  reuse: bool = True, level: bool = False, level_ahead: float = 0.0,
                  ground_y: float | None = None) -> None:
         """min_score: boxes scored below it are dropped; frame_dt: seconds per sequence number for frames
-        without timestamps; objects: the moving-object post-processing (its size prior gives amodal boxes,
+        with neither capture times nor timestamps; objects: the moving-object post-processing (its size prior gives amodal boxes,
         core.moving.amodal; None: the defaults, visible boxes); reuse: False encodes the previous frame again every step (for comparisons);
         level: each frame's map frame is its camera levelled to gravity (core.geometry.poses.levelled: the
         frames' world_T_cam must be given, in a world whose Y points down), so boxes are upright and the

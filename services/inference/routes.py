@@ -129,7 +129,7 @@ def flow_input(views0: Views, views1: Views, stabilise: str) -> FlowInput:
 def moving_interval(views0: Views, views1: Views, *, modules: Sequence[str], frame_dt: float,
                     pose_fields: tuple[str, str] = ("views0[0].world_T_cam", "views1[0].world_T_cam"),
                     time_field: str = "views1") -> float:
-    """Seconds from views0 to views1 (validation.pair_interval: from their timestamps), after refusing what a
+    """Seconds from views0 to views1 (validation.pair_interval: from their capture times, else timestamps), after refusing what a
     moving-object pair cannot answer without guessing: a bundle without an egomotion module (`modules`: the
     bundle's) stabilises with the poses, which must then be given. The stream step checks its pairs here too."""
     if "egomotion" not in modules:

@@ -45,7 +45,7 @@ class RuntimeConfig:
     max_wait_ms: float = 2.0
     max_queue: int = 64
     timeout_s: float = 30.0              # per-request deadline (queue + model)
-    # Seconds per sequence number for moving-object pairs whose frames carry no timestamps (both 0).
+    # Seconds per sequence number for moving-object pairs whose frames carry no capture times or timestamps.
     frame_dt: float = DEFAULT_DT
     # The moving-object post-processing of the moving_objects route and the gRPC stream (`serve --size-prior`,
     # `--min-object-speed`); its `dt` is unused (each pair's interval comes from its frames or frame_dt).

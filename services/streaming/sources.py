@@ -69,7 +69,11 @@ def synthetic_step(manifest: dict) -> float | None:
     from core.presets import get_preset
     from core.synthetic.config import world_with
 
-    return float(world_with(get_preset(manifest["preset"]), generator.get("world") or {}).dt)
+    try:
+        return float(world_with(get_preset(manifest["preset"]), generator.get("world") or {}).dt)
+    except (KeyError, ValueError) as e:   # a manifest this build cannot read the world of
+        raise ConfigError(f"the dataset's manifest names no synthetic world this build knows ({e}); give "
+                          "--capture-dt S, the seconds between its frames") from e
 
 
 def _dataset_frames(dataset, *, view: int, loop: bool, capture_dt: float | None) -> Iterator[dict]:

@@ -152,7 +152,7 @@ def grpc_requests(examples: dict[str, dict]) -> dict[str, object]:
         views = wire.views_from_json(schemas.MapRequestJSON(views=views_json).views, "views")
         f = Frames(rgb=views.rgb, depth=views.depth, pix_T_cam=views.pix_T_cam, world_T_cam=views.world_T_cam,
                    camera_id=views.camera_ids[0] if views.camera_ids else "", sequence=views.sequence,
-                   timestamp=views.timestamp)
+                   timestamp=views.timestamp, capture_time=views.capture_time)
         return [frame_proto(f, v) for v in range(views.rgb.shape[0])]
 
     m, p = examples["/v1/map"], examples["/v1/egomotion"]

@@ -185,9 +185,12 @@ def test_velocities_follow_the_frames_clock(server, rest, grpc_client, core_bund
     for client in (rest, grpc_client):
         assert_boxes(client.moving_objects(f0, f1), answers[2 * STEP])
     # capture times, when both frames carry one, outrank the timestamps (a recording replayed slower)
+    from services.inference.client import RestClient
+
     f0.timestamp, f1.timestamp, f0.capture_time, f1.capture_time = 10.0, 10.0 + 2 * STEP, 50.0, 50.0 + STEP
-    for client in (rest, grpc_client):
-        assert_boxes(client.moving_objects(f0, f1), answers[STEP])
+    with RestClient(server.url, encoding="json") as rest_json:
+        for client in (rest, rest_json, grpc_client):   # npz, JSON, protobuf
+            assert_boxes(client.moving_objects(f0, f1), answers[STEP])
 
 
 @pytest.mark.parametrize("encoding,png", [("json", False), ("png", True)])

@@ -9,8 +9,9 @@ What this proves:
 - detections arrive: one Detections message per frame the bridge processed (the status's
   `processed` count), with the input's sequence number and the camera's source timestamp, in frame
   `ref`, and the boxes equal what core.pipeline.moving_objects gives for the same pair of frames
-  (the previous processed frame and this one, over their timestamps' interval; the frames are regenerated
-  here from the same seed);
+  (the previous processed frame and this one, over their capture times' interval — the synthetic
+  world's 0.2 s per frame, while the camera sends at 2 Hz; the frames are regenerated here from the same
+  seed);
 - the detections are moving cars: the bundle's modules are freshly initialised, i.e. the flow and
   egomotion modules are plain correlators (tests/stream_bundles.py), and at least one published box
   lies within 2 m of the centre of a car that truly moves in that pair (ground truth regenerated here).
@@ -48,6 +49,7 @@ BRIDGE_ID = "itest"
 # out at ~0.7 m/s over the camera's 0.2 s steps), under the default 1.0 m/s, so the default would publish no
 # boxes to compare; the flag is the user's lever for such a bundle.
 OBJECT_SPEED = 0.5
+FRAME_DT = 0.35   # the bridge's fallback clock for frames with neither capture times nor timestamps
 MOVERS_SEED = 1  # a first scene whose moving cars the camera (view 0 of the rig) sees
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -151,7 +153,9 @@ def stack(tmp_path_factory):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     bridge = StreamProcess(["bridge", "--bundle", str(bundle), "--listen", endpoint, "--bridge-id", BRIDGE_ID,
                             "--threads", "1", "--device", "cpu", "--min-score", "-1", "--status-every", "0",
-                            "--min-object-speed", str(OBJECT_SPEED)],
+                            "--min-object-speed", str(OBJECT_SPEED),
+                            # not the world's 0.2 s: a pair timed by sequence numbers would show it
+                            "--frame-dt", str(FRAME_DT)],
                            tmp, "bridge")
     net = None
     try:
@@ -255,10 +259,14 @@ def test_detections_arrive_and_equal_the_pipeline(stack):
                                  config=MovingObjectsConfig(min_object_speed=OBJECT_SPEED))
         valid = ref["valid"][0]
         scores = ref["scores"][0][valid].numpy()
-        boxes = ref["boxes"][0][valid].numpy()[np.argsort(-scores, kind="stable")]
+        order = np.argsort(-scores, kind="stable")
+        boxes = ref["boxes"][0][valid].numpy()[order]
         got = np.array([[b[k] for k in ("x", "y", "z", "lx", "ly", "lz", "yaw")] for b in now["boxes"]]).reshape(-1, 7)
         assert got.shape == boxes.shape, (now["sequence"], got.shape, boxes.shape)
         np.testing.assert_allclose(got, boxes, atol=1e-3)
+        # velocities scale with the interval: only the capture clock's gives these
+        velocities = np.array([b["velocity"] for b in now["boxes"]]).reshape(-1, 3)
+        np.testing.assert_allclose(velocities, ref["velocities"][0][valid].numpy()[order], atol=1e-3)
         total_boxes += len(got)
         near_movers += int((_distance_to_moving_cars(record, before["sequence"], got) < 2.0).sum())
     assert total_boxes > 0

@@ -36,3 +36,19 @@ def test_a_generated_dataset_replays_in_its_worlds_step(tmp_path):
     given = [f["capture_offset"] for f in dataset_frames(str(tmp_path / "slow"), capture_dt=0.1)]
     assert given == pytest.approx([0.0, 0.1])                               # --capture-dt wins
     assert synthetic_step({"preset": "tiny", "generator": {"source": "tum"}}) is None
+
+
+def test_the_live_synthetic_world_runs_on_its_own_step():
+    from core.presets import get_preset
+    from core.synthetic.config import default_world_config
+    from services.streaming.sources import synthetic_frames
+
+    frames = synthetic_frames(preset_name="tiny", seed=0, frames_per_episode=2)
+    offsets = [next(frames)["capture_offset"] for _ in range(3)]   # across an episode's cut too
+    step = default_world_config(get_preset("tiny")).dt
+    assert offsets == pytest.approx([0.0, step, 2 * step]) and step == pytest.approx(0.2)
+
+
+def test_a_manifest_whose_world_is_unknown_asks_for_the_step():
+    with pytest.raises(ConfigError, match="--capture-dt"):
+        synthetic_step({"preset": "tiny", "generator": {"source": "synthetic", "world": {"no_such_field": 1}}})
