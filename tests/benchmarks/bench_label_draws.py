@@ -3,7 +3,7 @@
     python tests/benchmarks/bench_label_draws.py --work REPORT_DIR/work --heldout DIR --out OUT
         [--seeds 0 1 2] [--arms contrastive regression] [--draws 0 1 2 3 4 5 6 7] [--budget 2]
         [--pretrain-steps N --pretrain-options JSON] [--frozen] [--detector-steps N [N ...]]
-        [--device cpu|cuda] [--threads 1]
+        [--device cpu|cuda] [--threads 1] [--heldout-seed 7 [--heldout-episodes 32]]
 
 For each seed of a `bench paper` work directory and each pretraining arm, trains the fine-tuned detector
 (with --frozen: the pretrained arms' detectors on frozen features, the paper's protocol and the few-label
@@ -20,6 +20,10 @@ that is the same as training each length from the start). Resumable: OUT/results
 finished (seed, arm, draw, frozen, detector steps); a rerun skips them. Prints one JSON line per detector, then
 per seed each arm's mAP@0.5 by draw and the contrastive − regression difference per draw (mean and sd
 over draws).
+
+A work directory without its data/ (carried to a GPU machine with only plan.json and the seeds'
+pretrain_*/selected bundles) has its training and validation records regenerated from the plan, and a
+missing --heldout directory is generated from --heldout-seed.
 
 Measured (session 17, the small report's work directory, 32 held-out records of data seed 7, on a lent
 H100): README "Label draws" and docs/findings.md ("Why three fail").
@@ -51,6 +55,9 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--work", type=Path, required=True, help="a `bench paper` run's REPORT_DIR/work")
     p.add_argument("--heldout", type=Path, required=True, help="records to score on (not the test set)")
+    p.add_argument("--heldout-seed", type=int, default=None,
+                   help="if --heldout does not exist, generate it: synthetic records of this data seed (e.g. 7)")
+    p.add_argument("--heldout-episodes", type=int, default=32)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--arms", nargs="+", choices=("random", "regression", "contrastive"),
@@ -73,6 +80,7 @@ def main() -> None:
 
     config = BenchConfig.from_dict(json.loads((args.work / "plan.json").read_text()))
     config = dataclasses.replace(config, device=str(device))
+    _regenerate_missing_data(config, args)
     budget = args.budget or config.budgets_sorted[0]
     batch_size = config.detector_batch_size(budget, get_preset(config.preset).train.batch_size)  # as the benchmark's
     train_dir = args.work / "data" / "train"
@@ -130,6 +138,27 @@ def main() -> None:
                         f.write(json.dumps(row) + "\n")
                     print(json.dumps(row), flush=True)
     _summary(rows)
+
+
+def _regenerate_missing_data(config: BenchConfig, args) -> None:
+    """A work directory carried without its datasets (to a GPU machine: plan.json and the pretrained
+    bundles are a few MB, the data 50 MB) gets its training and validation records regenerated from the
+    plan with the benchmark's generator and seeds (byte-identical to the benchmark's on the same software:
+    checked on the small plan's validation split); --heldout likewise from --heldout-seed."""
+    from services.bench.data import generate_split
+    from services.bench.paper import _data_specs
+
+    specs = _data_specs(config)
+    for split in ("train", "val"):
+        target = args.work / "data" / split
+        if not (target / "manifest.json").exists():
+            print(f"regenerating {target} from the plan", flush=True)
+            generate_split(target, **specs[split])
+    if not args.heldout.exists():
+        if args.heldout_seed is None:
+            raise SystemExit(f"--heldout {args.heldout} does not exist (give --heldout-seed S to generate it)")
+        generate_split(args.heldout, preset=config.preset, episodes=args.heldout_episodes, seed=args.heldout_seed,
+                       split="val", **({"world": dict(config.world)} if config.world else {}))
 
 
 def _summary(rows: list[dict]) -> None:
