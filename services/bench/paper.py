@@ -202,8 +202,10 @@ def _check_same_plan(path: Path, config: BenchConfig, *, rerun_changed: bool = F
         earlier.setdefault("task_options", {})  # plans written before the option ran the tasks' defaults
         earlier.setdefault("label_draws", 1)     # plans written before label draws trained one
         earlier.setdefault("world", {})          # plans written before the field: the preset's world
-        if earlier != current:
-            changed = sorted(k for k in set(earlier) | set(current) if earlier.get(k) != current.get(k))
+        changed = sorted(k for k in set(earlier) | set(current) if earlier.get(k) != current.get(k))
+        if not changed and _workers_change_stages(json.loads(path.read_text()), config, path.parent):
+            changed = ["workers"]   # Ray workers share out each detector's labels: smaller per-worker batches
+        if changed:
             if not rerun_changed:
                 raise BenchConfigError(f"{path.parent.parent} holds a benchmark with another plan "
                                        f"(differs in {changed}); use a new --out, the same options, or "
@@ -213,6 +215,16 @@ def _check_same_plan(path: Path, config: BenchConfig, *, rerun_changed: bool = F
             log(f"[bench] plan changed in {changed}")
             forget_changed(BenchConfig.from_dict(json.loads(path.read_text())), config, path.parent, log)
     write_json(path, config.to_dict())
+
+
+def _workers_change_stages(earlier: dict, config: BenchConfig, work: Path) -> bool:
+    """Whether the run's Ray worker count changed in a way some stage's digest sees (detectors whose
+    labels the workers share out; services.bench.plan.BenchConfig.detector_batch_size)."""
+    if earlier.get("workers", 0) == config.workers:
+        return False
+    from services.bench.replan import changed_stages
+
+    return bool(changed_stages(BenchConfig.from_dict(earlier), config, work))
 
 
 def _load_records(data_dir: Path) -> list[dict]:

@@ -159,11 +159,11 @@ class BenchConfig:
                                        f"and mode one of {MODES}")
         if self.workers < 0:
             raise BenchConfigError(f"workers must be >= 0, got {self.workers}")
-        if few is not None and self.workers > few:
+        if self.workers > self.budget_records(few):
             # refused here, not at the first detector stage hours into the run
-            raise BenchConfigError(f"workers {self.workers}: the smallest label budget labels {few} record(s) "
-                                   "and every Ray worker needs at least one; use at most that many workers or "
-                                   "a larger smallest budget")
+            raise BenchConfigError(f"workers {self.workers}: the smallest label budget labels "
+                                   f"{self.budget_records(few)} record(s) and every Ray worker needs at least one; "
+                                   "use at most that many workers or a larger smallest budget")
         if self.precision not in ("fp32", "bf16"):
             raise BenchConfigError(f"precision must be fp32 or bf16, got {self.precision!r}")
         if self.retrieval_per_example < 1 or self.retrieval_cube < 1 or self.retrieval_cube % 2 == 0:

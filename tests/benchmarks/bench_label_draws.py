@@ -16,7 +16,10 @@ for the paper's objectives without the matching term) instead of reading the ben
 With --detector-steps N the detectors train N fixed steps instead of the plan's rule (is that rule long
 enough to converge?); with several lengths (ascending) each detector is scored at every one of them, one
 run continued from the last (the learning rate is constant and every step seeded from (seed, step), so
-that is the same as training each length from the start). Resumable: OUT/results.jsonl keeps every
+that is the same as training each length from the start wherever an epoch is one step, as at 2 labels
+and batch 2; with more steps per epoch a resumed run's shuffles restart their epoch count, so it is a
+run of that length with another batch order). A later call into the same --out must extend the lengths
+run there before. Resumable: OUT/results.jsonl keeps every
 finished (seed, arm, draw, frozen, detector steps); a rerun skips them. Prints one JSON line per detector, then
 per seed each arm's mAP@0.5 by draw and the contrastive − regression difference per draw (mean and sd
 over draws).
@@ -78,6 +81,9 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
 
+    lengths = args.detector_steps
+    if len(lengths) > 1 and (0 in lengths or lengths != sorted(set(lengths))):
+        p.error("--detector-steps: several lengths must be positive and ascending")
     config = BenchConfig.from_dict(json.loads((args.work / "plan.json").read_text()))
     config = dataclasses.replace(config, device=str(device))
     _regenerate_missing_data(config, args)
@@ -91,9 +97,6 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     results_path = args.out / "results.jsonl"
     rows = [json.loads(line) for line in results_path.read_text().splitlines()] if results_path.exists() else []
-    lengths = args.detector_steps
-    if len(lengths) > 1 and (0 in lengths or lengths != sorted(set(lengths))):
-        p.error("--detector-steps: several lengths must be positive and ascending")
     # rows of the other protocol or other detector lengths stay in the file
     rows = [r for r in rows if r.get("frozen", False) == args.frozen and r.get("detector_steps", 0) in lengths]
     # one length: its own run dir (as before); several: one run continued through them
@@ -128,7 +131,12 @@ def main() -> None:
                         init_bundle=pretrained(seed, arm), freeze=("mapper",) if frozen else (),
                         batch_size=batch_size,
                         log=lambda _: None)
-                    scores = evaluations.detection(load_bundle(bundle_dir, device), heldout, device=device)
+                    bundle = load_bundle(bundle_dir, device)
+                    trained = bundle.meta["provenance"]["steps"]
+                    if steps and trained != steps:   # the run dir already went further (another list of lengths)
+                        raise SystemExit(f"{run_dir} holds a detector trained {trained} steps, not {steps}: give "
+                                         "lengths that extend the ones run there before, or a new --out")
+                    scores = evaluations.detection(bundle, heldout, device=device)
                     row = {"seed": seed, "arm": arm, "draw": draw, "frozen": args.frozen,
                            "detector_steps": steps, "map": scores["map"],
                            "detections": scores["detections"], "gt": scores["gt_boxes"],
@@ -144,7 +152,8 @@ def _regenerate_missing_data(config: BenchConfig, args) -> None:
     """A work directory carried without its datasets (to a GPU machine: plan.json and the pretrained
     bundles are a few MB, the data 50 MB) gets its training and validation records regenerated from the
     plan with the benchmark's generator and seeds (byte-identical to the benchmark's on the same software:
-    checked on the small plan's validation split); --heldout likewise from --heldout-seed."""
+    checked on the small plan's validation split); --heldout likewise from --heldout-seed. Several processes
+    on one work directory: let one generate first (they would write the same directories at once)."""
     from services.bench.data import generate_split
     from services.bench.paper import _data_specs
 
@@ -154,7 +163,7 @@ def _regenerate_missing_data(config: BenchConfig, args) -> None:
         if not (target / "manifest.json").exists():
             print(f"regenerating {target} from the plan", flush=True)
             generate_split(target, **specs[split])
-    if not args.heldout.exists():
+    if not (args.heldout / "manifest.json").exists():
         if args.heldout_seed is None:
             raise SystemExit(f"--heldout {args.heldout} does not exist (give --heldout-seed S to generate it)")
         generate_split(args.heldout, preset=config.preset, episodes=args.heldout_episodes, seed=args.heldout_seed,

@@ -176,7 +176,7 @@ def test_label_draws_travel_with_the_plan_and_an_earlier_plan_means_one(tmp_path
 
 def test_ray_workers_share_each_detectors_labels_and_never_outnumber_them():
     """With N Ray workers a detector's labelled records are sharded N ways, so its per-worker batch is at
-    most one share (2 labels on 2 workers: 1 each; the run-wide batch stays min(batch, labels)); more
+    most one share (2 labels on 2 workers: 1 each, a run-wide batch of 2 as in one process); more
     workers than the smallest budget's records are refused when the plan is made, not at its first
     detector stage after the pretraining."""
     preset_batch = 2                          # the small preset's
@@ -191,5 +191,25 @@ def test_ray_workers_share_each_detectors_labels_and_never_outnumber_them():
             assert plan.detector_batch_size(budget, preset_batch) == expected, (plan.workers, budget)
     assert in_process.detector_batch_size(2, preset_batch) == 2 and two.detector_batch_size(2, preset_batch) == 1
     assert plan_for("small", workers=2, batch_size=4).detector_batch_size(8, preset_batch) == 4
-    with pytest.raises(BenchConfigError, match="workers 3: the smallest label budget labels 2 record"):
+
+
+def test_a_rerun_with_other_workers_is_refused_only_where_a_detector_would_train_differently(tmp_path):
+    """The worker count is no part of a plan's identity, except that Ray workers share out each detector's
+    labels: 2 labels on 2 workers train with one record per worker and step, so a run continued with
+    another count would mix detectors of both kinds; 4 labels on 2 workers keep the batch of 2."""
+    import json
+
+    from services.bench.paper import _check_same_plan
+
+    path = tmp_path / "work" / "plan.json"
+    path.parent.mkdir()
+    path.write_text(json.dumps(plan_for("tiny", quick=True).to_dict()))          # budgets 2 and all, in-process
+    with pytest.raises(BenchConfigError, match="workers"):
+        _check_same_plan(path, plan_for("tiny", quick=True, workers=2))
+    _check_same_plan(path, plan_for("tiny", quick=True))                         # the same count: fine
+    path.write_text(json.dumps(plan_for("tiny", quick=True, label_budgets=(4, None), label_draws=1).to_dict()))
+    _check_same_plan(path, plan_for("tiny", quick=True, label_budgets=(4, None), label_draws=1, workers=2))
+    with pytest.raises(BenchConfigError, match="workers 3: the smallest label budget labels 2"):
         plan_for("small", workers=3, label_budgets=(2, None))
+    with pytest.raises(BenchConfigError, match="labels 64 record"):                # every budget is "all"
+        plan_for("small", workers=65, label_budgets=(None,))
