@@ -37,6 +37,7 @@ class Frames:
     sequence: int = 0
     timestamp: float = 0.0
     capture_time: float = 0.0      # when the scene was seen (0: not given); times motion when both have one
+    scene_start: bool = False      # streams: a cut to a new scene (not paired with the camera's previous frame)
 
     def batched(self) -> "Frames":
         """The same views with the leading V axis present."""
@@ -45,7 +46,8 @@ class Frames:
         if rgb.ndim == 3:
             rgb, depth, K = rgb[None], depth[None], K[None]                 # 1×H×W×3, 1×H×W, 1×4×4
             pose = None if pose is None else pose[None]                    # 1×4×4
-        return Frames(rgb, depth, K, pose, self.camera_id, self.sequence, self.timestamp, self.capture_time)
+        return Frames(rgb, depth, K, pose, self.camera_id, self.sequence, self.timestamp, self.capture_time,
+                      self.scene_start)
 
 
 class ServiceCallError(Exception):
@@ -226,7 +228,7 @@ def frame_proto(f: Frames, v: int, *, png: bool = False):
         rgb=rgb_img, depth=depth_img, pix_T_cam=codecs.numpy_to_tensor(np.asarray(f.pix_T_cam[v], np.float32)),
         world_T_cam=None if f.world_T_cam is None else codecs.numpy_to_tensor(np.asarray(f.world_T_cam[v], np.float32)),
         camera_id=f.camera_id, sequence=int(f.sequence), timestamp=float(f.timestamp),
-        capture_time=float(f.capture_time))
+        capture_time=float(f.capture_time), scene_start=bool(f.scene_start))
 
 
 def _info(msg) -> dict:

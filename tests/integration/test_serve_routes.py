@@ -271,6 +271,11 @@ def test_stream_follows_the_bridge_rules_and_answers_as_core_pipeline(server, gr
     with pytest.raises(ServiceCallError) as e:
         list(grpc_client.stream_moving_objects(backwards))
     assert e.value.status == "INVALID_ARGUMENT" and e.value.detail.startswith("frame.timestamp")
+    # a frame that opens a new recording (its clock restarts) is a cut, answered like a first frame
+    cut = movers(3, stamps=[100.0, 100.0 + STEP, 50.0])
+    cut[2].scene_start = True
+    out = list(grpc_client.stream_moving_objects(cut))
+    assert [d["sequence"] for d in out] == [0, 1, 2] and len(out[2]["boxes"]) == 0
 
 
 def test_stream_levelled_by_metadata_answers_as_core_pipeline_in_the_placed_frames(grpc_client, core_bundle):
