@@ -337,12 +337,13 @@ class GrpcClient:
         return {"info": _info(r.info), **detections_dict(r.detections)}
 
     def stream_moving_objects(self, frames, *, level: bool = False, level_ahead: float | None = None,
-                              ground_y: float | None = None):
+                              ground_y: float | None = None, timeout_s: float | None = None):
         """Iterable of single-view Frames -> iterator of detections dicts: one per frame, but none for a frame
         whose sequence number is not past its camera's last one (dropped as a duplicate or out of order).
         level / level_ahead / ground_y: the zenoh bridge's --level / --level-ahead / --ground-y (boxes in each
         frame's camera levelled to gravity, frame "level", its pose in the dict's world_T_frame), sent as the
-        call's metadata (services.inference.stream_options)."""
+        call's metadata (services.inference.stream_options). timeout_s: a deadline for the whole stream
+        (default none: a camera's stream runs as long as it sends; the client's timeout_s is per unary call)."""
         from services.inference.stream_options import stream_metadata
 
         metadata = self._metadata + stream_metadata(level=level, level_ahead=level_ahead, ground_y=ground_y)
@@ -351,7 +352,7 @@ class GrpcClient:
             for f in frames:
                 yield frame_proto(f.batched(), 0, png=self._png)
         try:
-            for d in self._stub.StreamMovingObjects(requests(), timeout=self._timeout_s, metadata=metadata):
+            for d in self._stub.StreamMovingObjects(requests(), timeout=timeout_s, metadata=metadata):
                 yield detections_dict(d)
         except self._grpc.RpcError as e:
             code = e.code().name

@@ -278,6 +278,27 @@ def test_stream_follows_the_bridge_rules_and_answers_as_core_pipeline(server, gr
     assert [d["sequence"] for d in out] == [0, 1, 2] and len(out[2]["boxes"]) == 0
 
 
+def test_a_stream_outlives_the_clients_per_call_timeout(server):
+    """A camera's stream runs as long as it sends: the client's timeout_s bounds unary calls, and a
+    stream only when given its own (a stream that outlasts it then ends with DEADLINE_EXCEEDED)."""
+    import time
+
+    from services.inference.client import GrpcClient, ServiceCallError
+
+    def slowly(frames):
+        for f in frames:
+            yield f
+            time.sleep(0.6)                 # 3 frames: ~1.8 s, past the 1 s timeout
+
+    with GrpcClient(server.target, timeout_s=1.0) as c:
+        out = list(c.stream_moving_objects(slowly(movers(3, stamps=[100.0, 100.0 + STEP, 100.0 + 2 * STEP]))))
+        assert [d["sequence"] for d in out] == [0, 1, 2]
+        with pytest.raises(ServiceCallError) as e:
+            list(c.stream_moving_objects(slowly(movers(3, stamps=[100.0, 100.0 + STEP, 100.0 + 2 * STEP])),
+                                         timeout_s=1.0))
+        assert e.value.status == "DEADLINE_EXCEEDED"
+
+
 def test_stream_levelled_by_metadata_answers_as_core_pipeline_in_the_placed_frames(grpc_client, core_bundle):
     """The call's metadata asks for the bridge's --level --level-ahead --ground-y: boxes in each previous frame's
     camera levelled to gravity and placed (core.geometry.poses.level_over_ground), frame "level" with that pose,
