@@ -102,7 +102,7 @@ def test_tls_acl_router_enforces_the_roles(tmp_path):
     roles = ["router", "camera", "bridge", "listener"]
     _make_certificates(tmp_path, roles)
     port = _free_port()
-    text = TLS_CONFIG.read_text().replace("/etc/zenoh/certs", str(tmp_path))
+    text = TLS_CONFIG.read_text().replace("/etc/zenoh-certs", str(tmp_path))
     assert "tls/0.0.0.0:7448" in text
     router = zenoh.open(zenoh.Config.from_json5(text.replace("tls/0.0.0.0:7448", f"tls/127.0.0.1:{port}")))
     sessions = {}
