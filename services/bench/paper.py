@@ -193,17 +193,18 @@ def _check_same_plan(path: Path, config: BenchConfig, *, rerun_changed: bool = F
     from services.bench.plan import BenchConfigError
 
     current = {k: v for k, v in config.to_dict().items() if k not in ("seeds", "workers", "device")}
-    if path.exists() and "rules" not in json.loads(path.read_text()):
+    written = json.loads(path.read_text()) if path.exists() else None
+    if written is not None and "rules" not in written:
         raise BenchConfigError(f"{path.parent.parent} holds a benchmark of an older n3dmap (fixed step counts, "
                                "no stopping rules); use a new --out")
-    if path.exists():
-        earlier = {k: v for k, v in json.loads(path.read_text()).items() if k not in ("seeds", "workers", "device")}
+    if written is not None:
+        earlier = {k: v for k, v in written.items() if k not in ("seeds", "workers", "device")}
         earlier.setdefault("precision", "fp32")  # plans written before the option trained in fp32
         earlier.setdefault("task_options", {})  # plans written before the option ran the tasks' defaults
         earlier.setdefault("label_draws", 1)     # plans written before label draws trained one
         earlier.setdefault("world", {})          # plans written before the field: the preset's world
         changed = sorted(k for k in set(earlier) | set(current) if earlier.get(k) != current.get(k))
-        if not changed and _workers_change_stages(json.loads(path.read_text()), config, path.parent):
+        if not changed and _workers_change_stages(written, config, path.parent):
             changed = ["workers"]   # Ray workers share out each detector's labels: smaller per-worker batches
         if changed:
             if not rerun_changed:
@@ -213,7 +214,7 @@ def _check_same_plan(path: Path, config: BenchConfig, *, rerun_changed: bool = F
             from services.bench.replan import forget_changed
 
             log(f"[bench] plan changed in {changed}")
-            forget_changed(BenchConfig.from_dict(json.loads(path.read_text())), config, path.parent, log)
+            forget_changed(BenchConfig.from_dict(written), config, path.parent, log)
     write_json(path, config.to_dict())
 
 
