@@ -34,7 +34,7 @@ class Frames:
     pix_T_cam: np.ndarray
     world_T_cam: np.ndarray | None = None
     camera_id: str = ""
-    sequence: int = 0
+    sequence: int | None = None    # None: not set — sent as 0; a stream numbers it after its camera's last frame
     timestamp: float = 0.0
     capture_time: float = 0.0      # when the scene was seen (0: not given); times motion when both have one
     scene_start: bool = False      # streams: a cut to a new scene (not paired with the camera's previous frame)
@@ -102,7 +102,7 @@ class RestClient:
             images = {"rgb": {"array": _tensor_json(rgb)}, "depth": {"array": _tensor_json(depth)}}
         return {**images, "pix_T_cam": np.asarray(f.pix_T_cam[v], np.float64).tolist(),
                 "world_T_cam": None if f.world_T_cam is None else np.asarray(f.world_T_cam[v], np.float64).tolist(),
-                "camera_id": f.camera_id, "sequence": int(f.sequence), "timestamp": float(f.timestamp),
+                "camera_id": f.camera_id, "sequence": int(f.sequence or 0), "timestamp": float(f.timestamp),
                 "capture_time": float(f.capture_time)}
 
     def _views_json(self, frames: Frames) -> list[dict]:
@@ -116,7 +116,7 @@ class RestClient:
                f"pix_T_cam{suffix}": np.asarray(f.pix_T_cam, np.float32)}
         if f.world_T_cam is not None:
             out[f"world_T_cam{suffix}"] = np.asarray(f.world_T_cam, np.float32)
-        out[f"timestamp{suffix}"], out[f"sequence{suffix}"] = np.float64(f.timestamp), np.uint64(f.sequence)
+        out[f"timestamp{suffix}"], out[f"sequence{suffix}"] = np.float64(f.timestamp), np.uint64(f.sequence or 0)
         out[f"capture_time{suffix}"] = np.float64(f.capture_time)
         return out
 
@@ -227,7 +227,7 @@ def frame_proto(f: Frames, v: int, *, png: bool = False):
     return types_pb2.Frame(
         rgb=rgb_img, depth=depth_img, pix_T_cam=codecs.numpy_to_tensor(np.asarray(f.pix_T_cam[v], np.float32)),
         world_T_cam=None if f.world_T_cam is None else codecs.numpy_to_tensor(np.asarray(f.world_T_cam[v], np.float32)),
-        camera_id=f.camera_id, sequence=int(f.sequence), timestamp=float(f.timestamp),
+        camera_id=f.camera_id, sequence=int(f.sequence or 0), timestamp=float(f.timestamp),
         capture_time=float(f.capture_time), scene_start=bool(f.scene_start))
 
 
@@ -339,7 +339,9 @@ class GrpcClient:
     def stream_moving_objects(self, frames, *, level: bool = False, level_ahead: float | None = None,
                               ground_y: float | None = None, timeout_s: float | None = None):
         """Iterable of single-view Frames -> iterator of detections dicts: one per frame, but none for a frame
-        whose sequence number is not past its camera's last one (dropped as a duplicate or out of order).
+        whose sequence number is not past its camera's last one (dropped as a duplicate or out of order). A
+        frame whose `sequence` is None (not set) is numbered one past the largest its camera sent before (0
+        for its first), so a caller that never numbers frames gets an answer to each.
         level / level_ahead / ground_y: the zenoh bridge's --level / --level-ahead / --ground-y (boxes in each
         frame's camera levelled to gravity, frame "level", its pose in the dict's world_T_frame), sent as the
         call's metadata (services.inference.stream_options). timeout_s: a deadline for the whole stream
@@ -349,8 +351,13 @@ class GrpcClient:
         metadata = self._metadata + stream_metadata(level=level, level_ahead=level_ahead, ground_y=ground_y)
 
         def requests():
+            last: dict[str, int] = {}   # camera_id -> the largest sequence number sent so far
             for f in frames:
-                yield frame_proto(f.batched(), 0, png=self._png)
+                f = f.batched()
+                if f.sequence is None:  # not set: the next number after the camera's last, so that it is answered
+                    f.sequence = last[f.camera_id] + 1 if f.camera_id in last else 0
+                last[f.camera_id] = max(last.get(f.camera_id, f.sequence), f.sequence)
+                yield frame_proto(f, 0, png=self._png)
         try:
             for d in self._stub.StreamMovingObjects(requests(), timeout=timeout_s, metadata=metadata):
                 yield detections_dict(d)

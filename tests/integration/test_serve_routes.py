@@ -278,6 +278,27 @@ def test_stream_follows_the_bridge_rules_and_answers_as_core_pipeline(server, gr
     assert [d["sequence"] for d in out] == [0, 1, 2] and len(out[2]["boxes"]) == 0
 
 
+def test_stream_numbers_frames_the_caller_left_unnumbered(grpc_client):
+    """Frames.sequence None (not set): the client numbers it one past its camera's largest sent so far (0
+    first), so every frame is answered; numbered frames are sent as given (a duplicate still gets none)."""
+    import copy
+
+    frames = movers(4)
+    for f in frames:
+        f.sequence = None
+    second_camera = copy.copy(frames[1])
+    second_camera.camera_id = "cam1"
+    out = list(grpc_client.stream_moving_objects(frames[:2] + [second_camera] + frames[2:]))
+    assert [(d["camera_id"], d["sequence"]) for d in out] == [("cam0", 0), ("cam0", 1), ("cam1", 0),
+                                                                ("cam0", 2), ("cam0", 3)]
+    numbered = movers(3)
+    numbered[1].sequence = 5
+    numbered[2].sequence = None            # after 5: 6
+    again = copy.copy(numbered[1])         # 5 again: a duplicate, no answer
+    out = list(grpc_client.stream_moving_objects([numbered[0], numbered[1], again, numbered[2]]))
+    assert [d["sequence"] for d in out] == [0, 5, 6]
+
+
 def test_a_stream_outlives_the_clients_per_call_timeout(server):
     """A camera's stream runs as long as it sends: the client's timeout_s bounds unary calls, and a
     stream only when given its own (a stream that outlasts it then ends with DEADLINE_EXCEEDED)."""
