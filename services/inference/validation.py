@@ -18,6 +18,9 @@ MAX_SIDE = 4096
 RIGID_TOL = 1e-3
 MAX_DEPTH_M = 1000.0
 FLOAT32_MAX = float(np.finfo(np.float32).max)
+# Views fused as one instant must have been captured together: a car at 10 m/s moves 0.5 m in 50 ms, about a
+# voxel at the presets' resolutions, so views further apart than this would fuse it twice.
+MAX_VIEW_SKEW_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -170,6 +173,18 @@ def stack_views(views: list[View], field: str) -> Views:
         if len(views) > 1 and not v.posed:
             raise InvalidInput(f"{field}[{i}].world_T_cam", f"missing: each of the {len(views)} views of one "
                                                             "instant needs its camera pose to be fused with the others")
+    captured = [v.capture_time > 0.0 for v in views]
+    if any(captured):
+        if not all(captured):
+            i = captured.index(False)
+            raise InvalidInput(f"{field}[{i}].capture_time", f"missing while view {captured.index(True)} of the same "
+                                                             "instant has one: give it for every view or for none")
+        first = min(range(len(views)), key=lambda i: views[i].capture_time)
+        last = max(range(len(views)), key=lambda i: views[i].capture_time)
+        skew = views[last].capture_time - views[first].capture_time
+        if skew > MAX_VIEW_SKEW_S:
+            raise InvalidInput(f"{field}[{last}].capture_time", f"{skew:.3f} s after view {first}'s: views fused as "
+                                                                f"one instant must be captured within {MAX_VIEW_SKEW_S} s")
     return Views(rgb=np.stack([v.rgb for v in views]),              # V×H×W×3
                  depth=np.stack([v.depth for v in views]),          # V×H×W
                  pix_T_cam=np.stack([v.pix_T_cam for v in views]),  # V×4×4

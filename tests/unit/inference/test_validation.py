@@ -94,6 +94,23 @@ def test_several_views_of_one_instant_each_need_their_pose():
     assert e.value.field == "views0[1].world_T_cam"
 
 
+def test_views_of_one_instant_were_captured_together():
+    """Capture times of fused views: all given or none, and within MAX_VIEW_SKEW_S of each other (else a
+    moving object would be fused twice); the instant's capture time is the latest."""
+    from services.inference.validation import MAX_VIEW_SKEW_S
+
+    together = stack_views([_view(capture_time=10.0), _view(capture_time=10.0 + 0.8 * MAX_VIEW_SKEW_S)], "views")
+    assert together.capture_time == pytest.approx(10.0 + 0.8 * MAX_VIEW_SKEW_S)
+    assert stack_views([_view(), _view()], "views").capture_time == 0.0
+    with pytest.raises(InvalidInput) as e:
+        stack_views([_view(capture_time=10.0), _view(), _view(capture_time=10.0)], "views0")
+    assert e.value.field == "views0[1].capture_time" and "view 0" in str(e.value)
+    with pytest.raises(InvalidInput) as e:  # view 0 was captured last, view 2 first
+        stack_views([_view(capture_time=10.0 + 1.5 * MAX_VIEW_SKEW_S), _view(capture_time=10.01),
+                     _view(capture_time=10.0)], "views1")
+    assert e.value.field == "views1[0].capture_time" and "after view 2's" in str(e.value)
+
+
 def _stamped(timestamp, sequence=0, capture_time=0.0):
     return stack_views([_view(timestamp=timestamp, sequence=sequence, capture_time=capture_time)], "v")
 
