@@ -3,7 +3,8 @@
 One step, at a random time step t of each record (B×T×V views):
   1. the latent map in ref_t from all V views with their known poses (core.models.latent_map.Mapper,
      the same map the pretraining step fuses) — under no_grad and in eval mode when the features are
-     frozen (the paper freezes pretrained features and trains only the detector);
+     frozen (the paper freezes pretrained features and trains only the detector), then in training each
+     example's map computed alone and kept for the epochs after (core.tasks.frozen_maps);
   2. ground truth: the record's boxes (world) moved to ref_t (transform_boxes with inv(world_T_ref[t])),
      the valid ones whose centre lies inside the grid, replaced by their axis-aligned bounding boxes
      (the paper's detector is axis-aligned; so is its evaluation of these boxes);
@@ -39,6 +40,7 @@ from core.models.detector_boxes import boxes_to_aabb, encode_deltas
 from core.models.detector_targets import assign_anchors, sample_anchors
 from core.models.latent_map import Mapper
 from core.presets import Preset
+from core.tasks.frozen_maps import FrozenMapCache
 from core.tasks.poses import cam_T_ref
 
 ANCHOR_SPACING_M = 1.0   # target spacing of anchor cells; stride = voxels per cell
@@ -66,12 +68,17 @@ class DetectorTaskConfig:
     smooth_l1_beta: float = 1.0 / 9.0
     labels: int | None = None             # label budget: records with index < labels carry boxes
     freeze_features: bool = True
+    # Frozen features: MiB of latent maps kept across training steps (core.tasks.frozen_maps; 0 = none).
+    # Why: the same record's map recurs every epoch, and the mapper's forward is ~40 % of a frozen step.
+    frozen_map_cache_mb: int = 1024
     seed: int | None = None               # time-step choice / anchor sampling RNG
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.negative_iou <= self.positive_iou <= 1.0:
             raise ValueError(f"need 0 ≤ negative_iou ≤ positive_iou ≤ 1, got {self.negative_iou}, "
                              f"{self.positive_iou}")
+        if self.frozen_map_cache_mb < 0:
+            raise ValueError(f"frozen_map_cache_mb must be >= 0 MiB, got {self.frozen_map_cache_mb}")
         if self.labels is not None and self.labels < 0:
             raise ValueError(f"labels must be ≥ 0 (a number of records), got {self.labels}")
 
@@ -112,6 +119,8 @@ class DetectorTask(nn.Module):
                                    anchor_y=c.anchor_y)
         if c.freeze_features:
             self.mapper.requires_grad_(False)
+        self.frozen_maps = (FrozenMapCache(max_bytes=c.frozen_map_cache_mb << 20)
+                            if c.freeze_features and c.frozen_map_cache_mb > 0 else None)
         self._generator = torch.Generator().manual_seed(c.seed) if c.seed is not None else None
 
     @staticmethod
@@ -165,6 +174,8 @@ class DetectorTask(nn.Module):
         rgb, depth = batch["rgb"][:, t], batch["depth"][:, t]      # B×V×3×H×W, B×V×H×W
         poses = cam_T_ref(batch, t, t)                            # B×V×4×4
         if self.cfg.freeze_features:
+            if self.training and self.frozen_maps is not None:  # each example's map alone, kept for later epochs
+                return self.frozen_maps.maps(self.mapper, rgb, depth, batch["pix_T_cam"], poses)
             with torch.no_grad():
                 return self.mapper(rgb, depth, batch["pix_T_cam"], poses)
         return self.mapper(rgb, depth, batch["pix_T_cam"], poses)

@@ -1,0 +1,136 @@
+"""The frozen mapper's map cache: each example's map as the mapper computes it alone, reused by input digest,
+emptied when the weights change, bounded in bytes; and the detector task's frozen training through it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from core.data.batch import records_to_batch
+from core.models.latent_map import Mapper
+from core.presets import TINY
+from core.synthetic import generate_record
+from core.tasks import build_task
+from core.tasks.frozen_maps import FrozenMapCache
+from core.tasks.poses import cam_T_ref
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def batch():
+    return records_to_batch([generate_record(TINY, seed=s, num_frames=2, moving_ego=True) for s in (3, 4, 5)])
+
+
+def _inputs(batch, t=0):
+    """The Mapper's inputs of time t: rgb B×V×3×H×W, depth B×V×H×W, pix_T_cam, cam_T_ref B×V×4×4."""
+    return batch["rgb"][:, t], batch["depth"][:, t], batch["pix_T_cam"], cam_T_ref(batch, t, t)
+
+
+def _mapper(seed=0):
+    torch.manual_seed(seed)
+    mapper = Mapper(grid=TINY.grid, width=TINY.encoder_width, feature_dim=TINY.feature_dim,
+                    full_res=TINY.encoder_full_res)
+    return mapper.eval().requires_grad_(False)
+
+
+class _Counting:
+    """Counts the mapper's forward calls and the examples they took."""
+
+    def __init__(self, mapper):
+        self.calls, self.examples = 0, 0
+        mapper.register_forward_hook(self._hook)
+
+    def _hook(self, module, args, output):
+        self.calls += 1
+        self.examples += args[0].shape[0]
+
+
+def test_maps_are_each_example_alone_and_reused_by_inputs(batch):
+    mapper = _mapper()
+    counting = _Counting(mapper)
+    rgb, depth, K, poses = _inputs(batch)
+    with torch.no_grad():  # the slow, obvious reference: one example at a time, and the whole batch at once
+        alone = torch.cat([mapper(rgb[b:b + 1], depth[b:b + 1], K[b:b + 1], poses[b:b + 1]) for b in range(3)])
+        together = mapper(rgb, depth, K, poses)
+    counting.calls = counting.examples = 0
+    cache = FrozenMapCache(max_bytes=1 << 30)
+    got = cache.maps(mapper, rgb, depth, K, poses)
+    assert torch.equal(got, alone) and not got.requires_grad
+    torch.testing.assert_close(got, together, atol=1e-5, rtol=1e-5)
+    assert (counting.examples, cache.misses, cache.hits, len(cache)) == (3, 3, 0, 3)
+    order = torch.tensor([2, 0])  # another batch of the same examples: all from the cache, in its order
+    again = cache.maps(mapper, rgb[order], depth[order], K[order], poses[order])
+    assert torch.equal(again, alone[order]) and counting.examples == 3 and cache.hits == 2
+    later = _inputs(batch, t=1)   # another time step: other inputs, other maps
+    cache.maps(mapper, *(x[:1] for x in later))
+    assert counting.examples == 4 and len(cache) == 4
+
+
+def test_changed_weights_empty_the_cache(batch):
+    mapper = _mapper()
+    inputs = [x[:1] for x in _inputs(batch)]
+    cache = FrozenMapCache(max_bytes=1 << 30)
+    before = cache.maps(mapper, *inputs)
+    mapper.load_state_dict(_mapper(seed=1).state_dict())   # in place: the same tensors, new versions
+    after = cache.maps(mapper, *inputs)
+    with torch.no_grad():
+        want = mapper(*inputs)
+    assert torch.equal(after, want) and not torch.equal(after, before) and cache.misses == 2 and len(cache) == 1
+
+
+def test_the_cache_keeps_the_most_recent_maps_within_its_bytes(batch):
+    mapper = _mapper()
+    rgb, depth, K, poses = _inputs(batch)
+    one = [x[:1] for x in (rgb, depth, K, poses)]
+    size = FrozenMapCache(max_bytes=1 << 30).maps(mapper, *one).numel() * 4
+    cache = FrozenMapCache(max_bytes=2 * size)
+    cache.maps(mapper, rgb, depth, K, poses)                 # 3 maps into room for 2: example 0 evicted
+    assert len(cache) == 2 and cache.misses == 3
+    cache.maps(mapper, *(x[1:3] for x in (rgb, depth, K, poses)))
+    assert cache.hits == 2
+    cache.maps(mapper, *one)
+    assert cache.misses == 4
+    tiny = FrozenMapCache(max_bytes=size - 1)                # no map fits: computed every time, none kept
+    tiny.maps(mapper, *one)
+    tiny.maps(mapper, *one)
+    assert len(tiny) == 0 and tiny.misses == 2
+    with pytest.raises(ValueError, match="max_bytes"):
+        FrozenMapCache(max_bytes=-1)
+
+
+def test_frozen_detector_trains_through_the_cache_as_without_it(batch):
+    """Frozen features, training: the maps come from the cache (one mapper pass per distinct example and
+    time step) and the losses equal those of the task without it; fine-tuning and eval mode never use it."""
+    losses = {}
+    for mb in (0, 64):
+        torch.manual_seed(0)
+        task = build_task("detector", TINY, seed=0, frozen_map_cache_mb=mb)
+        task.train()
+        opt = torch.optim.Adam([p for p in task.parameters() if p.requires_grad], lr=3e-3)
+        losses[mb] = []
+        for _ in range(4):
+            out = task(batch)
+            opt.zero_grad(set_to_none=True)
+            out["loss"].backward()
+            opt.step()
+            losses[mb].append(float(out["loss"].detach()))
+        if mb:
+            assert task.frozen_maps.hits > 0 and task.frozen_maps.misses <= 6   # 3 records × 2 time steps
+        else:
+            assert task.frozen_maps is None
+    torch.testing.assert_close(losses[64], losses[0], atol=1e-5, rtol=1e-5)
+    tuned = build_task("detector", TINY, seed=0, freeze_features=False)
+    assert tuned.frozen_maps is None
+    task.eval()
+    misses = task.frozen_maps.misses + task.frozen_maps.hits
+    task.build_map(batch, 0)
+    assert task.frozen_maps.misses + task.frozen_maps.hits == misses
+    with pytest.raises(ValueError, match="frozen_map_cache_mb"):
+        build_task("detector", TINY, seed=0, frozen_map_cache_mb=-1)
