@@ -16,15 +16,6 @@ from core.tasks import build_task
 from core.tasks.detector import DetectorTask, gt_boxes_ref
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    # Two OpenMP threads on a busy 2-core CI machine are far slower than one for these small convs.
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def records():
     # One time step each, so every training step sees the same map and boxes.

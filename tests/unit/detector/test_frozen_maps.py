@@ -15,14 +15,6 @@ from core.tasks.frozen_maps import FrozenMapCache
 from core.tasks.poses import cam_T_ref
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def batch():
     return records_to_batch([generate_record(TINY, seed=s, num_frames=2, moving_ego=True) for s in (3, 4, 5)])
