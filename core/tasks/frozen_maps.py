@@ -27,7 +27,8 @@ def _digest(tensors: list[torch.Tensor]) -> bytes:
     for t in tensors:
         t = t.detach().contiguous().cpu()
         h.update(f"{t.dtype}{tuple(t.shape)}".encode())
-        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        if t.numel():
+            h.update(t.reshape(-1).view(torch.uint8).numpy())  # the buffer itself, not a bytes copy
     return h.digest()
 
 
