@@ -281,11 +281,11 @@ def _epochs(epochs: int, min_steps: int, max_steps: int) -> StageRule:
 # +0.024 (per-draw sd 0.024-0.044). From 800 to 1600 (session 23: this report's own seed-0 pretrainings, draws 0
 # and 1, the same held-out records, CPU): frozen contrastive 0.795 -> 0.811 / 0.860 -> 0.854, frozen regression
 # 0.765 -> 0.773 / 0.844 -> 0.846 — each within the claims' 0.02 margin, their mean difference +0.023 at both
-# lengths, so 800 is long enough for them. The detector trained from random initialisation is not converged at
-# 800 (draw 0: 0.439 / 0.580 / 0.589 / 0.648 / 0.681 at 100 / 200 / 400 / 800 / 1600 steps): its row is a lower
-# bound, 0.09-0.13 below the pretrained arms there, so the claims that read it keep their direction; doubling the
-# floor for it would cost each seed ~2 h here. The fine-tuned contrastive detector: 0.666 / 0.622 / 0.771 / 0.785
-# at 100-800. The protocol of `tests/benchmarks/bench_label_draws.py [--pretrain-steps 800] [--frozen] --draws ...
+# lengths, so 800 is long enough for them. The detector trained from random initialisation gains on one draw and
+# not the other (0.439 / 0.580 / 0.589 / 0.648 / 0.681 and 0.690 / 0.672 / 0.689 / 0.694 / 0.695 at 100 / 200 /
+# 400 / 800 / 1600 steps; mean +0.017 from 800 to 1600, within the margin but not settled): its row may be a
+# little low, and it is 0.09 below regression even at 1600 on draw 0; doubling the floor for it would cost each
+# seed ~2 h here. The fine-tuned contrastive detector: 0.666 / 0.622 / 0.771 / 0.785 at 100-800 (draw 0). The protocol of `tests/benchmarks/bench_label_draws.py [--pretrain-steps 800] [--frozen] --draws ...
 # --detector-steps 200 800 [1600]` (each longer detector continues the shorter one: constant learning rate,
 # seeded per step, so the same as training it from the start at 2 labels).
 _PROFILES: dict[tuple[str, bool], dict] = {
