@@ -34,7 +34,8 @@ class CameraStats:
     dropped_out_of_order: int = 0
     processing_errors: int = 0
     publisher_restarts: int = 0
-    scene_starts: int = 0  # processed frames the source marked as cuts (answered like a first frame)
+    scene_starts: int = 0  # processed frames answered as a scene's first: marked so by the source, or
+    # following a frame so marked that was dropped behind (bridge.py)
     last_sequence: int | None = None
     latencies_ms: deque = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
 

@@ -21,12 +21,17 @@ look-ahead work is wasted, never published. Why: at the small preset the
 frame's own work (egomotion volume and encoding, the flow module's encoding of it, its depth evidence)
 was about a third of a step, and one core could not keep up with a 10 Hz camera.
 
+A cut is never paired across: a frame replaced in its slot that started a scene (`scene_start`) passes the
+mark on to the frame that replaced it, which is then answered like a camera's first frame (else, with the
+cut's first frame dropped behind, the next frame would pair with the last frame of the scene before).
+
 Publisher restarts are recognised by the publisher id each camera puts in the sample attachment
 (`pub=<id>`): a new id resets that camera's state instead of reading as out-of-order frames.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import fnmatch
 import json
 import logging
@@ -62,6 +67,7 @@ class Parked:
     frame: object | None = None              # the decoded frame
     malformed: MalformedFrame | None = None  # or why it does not decode
     ahead: object | None = None              # processor.encode_ahead(frame), None if it failed
+    follows_cut: bool = False                # a frame it replaced started a scene: this one starts it now
 
 
 @dataclass
@@ -75,7 +81,8 @@ class Outputs:
 class FrameProcessor(Protocol):
     def decode(self, payload: bytes) -> object:
         """Payload bytes → decoded frame (raise MalformedFrame on bad input). Must expose
-        `.camera_id`, `.sequence` and `.timestamp` (source time, seconds since the epoch)."""
+        `.camera_id`, `.sequence` and `.timestamp` (source time, seconds since the epoch), and may expose
+        `.scene_start`."""
 
     def process(self, camera: str, state: CameraState, frame: object) -> Outputs:
         """Run the models on `frame` given the camera's state (state.previous is the last frame); raise
@@ -84,7 +91,17 @@ class FrameProcessor(Protocol):
     # Optional: `prepare(camera, state)` runs on the worker when no frame waits (after a frame was
     # processed and state.previous set); `encode_ahead(frame, previous) -> object` runs on the look-ahead
     # thread (previous: the result for the frame the worker took last of that camera, or None) and its
-    # result reaches `process(camera, state, frame, ahead)`; `stats() -> dict` adds to the status JSON.
+    # result reaches `process(camera, state, frame, ahead)`; `stats() -> dict` adds to the status JSON;
+    # `starts_scene(payload) -> bool` reads a payload's scene_start flag without a full decode (else the
+    # bridge decodes a replaced frame to read it).
+
+
+def mark_scene_start(frame: object) -> object:
+    """`frame` with scene_start set: a copy of a dataclass (View is frozen), else set in place."""
+    if dataclasses.is_dataclass(frame):
+        return dataclasses.replace(frame, scene_start=True)
+    frame.scene_start = True
+    return frame
 
 
 def publisher_id_of(attachment: bytes | None) -> str | None:
@@ -184,9 +201,11 @@ class Bridge:
                         attachment=sample.attachment.to_bytes() if sample.attachment is not None else None,
                         received_at=self.clock())
         with self._cond:
-            replaced = camera in self._slots
+            replaced = self._slots.get(camera)
+            if replaced is not None:
+                parked.follows_cut = replaced.follows_cut or self._starts_scene(replaced)
             self._slots[camera] = parked
-            if replaced:
+            if replaced is not None:
                 self.accounting.update(camera, received=1, dropped=1, dropped_behind=1)
             else:
                 self.accounting.update(camera, received=1, pending=1)
@@ -251,11 +270,29 @@ class Bridge:
                     parked.done.set()
                     self._cond.notify_all()
 
+    def _starts_scene(self, parked: Parked) -> bool:
+        """Whether `parked` (about to be replaced unprocessed) starts a scene; a payload that does not
+        decode starts none. Runs on zenoh's thread: a flag read, not a decode, when the processor can."""
+        frame = parked.frame
+        if frame is not None:
+            return bool(getattr(frame, "scene_start", False))
+        starts_scene = getattr(self.processor, "starts_scene", None)
+        try:
+            if starts_scene is not None:
+                return bool(starts_scene(parked.payload))
+            return bool(getattr(self.processor.decode(parked.payload), "scene_start", False))
+        except Exception:  # malformed: it would not have been processed either
+            return False
+
     def _decode(self, parked: Parked) -> None:
         try:
-            parked.frame = self.processor.decode(parked.payload)
+            frame = self.processor.decode(parked.payload)
         except MalformedFrame as e:
             parked.malformed = e
+            return
+        if parked.follows_cut and not getattr(frame, "scene_start", False):
+            frame = mark_scene_start(frame)
+        parked.frame = frame
 
     def _work(self) -> None:
         while True:

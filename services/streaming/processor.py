@@ -48,6 +48,17 @@ class RuntimeProcessor(MovingStream):
         except InvalidInput as e:
             raise MalformedFrame(str(e)) from None
 
+    @staticmethod
+    def starts_scene(payload: bytes) -> bool:
+        """The payload's Frame.scene_start, read without validating the frame (the bridge asks it of a
+        frame it replaces unprocessed); False for a payload that does not parse."""
+        msg = types_pb2.Frame()
+        try:
+            msg.ParseFromString(payload)
+        except DecodeError:
+            return False
+        return bool(msg.scene_start)
+
     def process(self, camera: str, state: CameraState, frame: View, ahead=None) -> Outputs:
         try:
             answer = self.step(camera, state, frame, ahead)

@@ -35,6 +35,7 @@ class JsonProcessor:
     def __init__(self, delay_s: float = 0.0) -> None:
         self.delay_s = delay_s
         self.seen: list[tuple[str, int]] = []
+        self.scene_starts: list[int] = []  # the processed frames that came marked as a scene's first
         self.release = threading.Event()
         self.release.set()
 
@@ -42,7 +43,8 @@ class JsonProcessor:
         try:
             d = json.loads(payload)
             return SimpleNamespace(camera_id=d["camera_id"], sequence=int(d["sequence"]),
-                                   timestamp=float(d["timestamp"]), fail=d.get("fail"))
+                                   timestamp=float(d["timestamp"]), fail=d.get("fail"),
+                                   scene_start=bool(d.get("scene_start", False)))
         except (ValueError, KeyError, TypeError) as e:
             raise MalformedFrame(f"not a frame: {e}") from None
 
@@ -54,6 +56,8 @@ class JsonProcessor:
         if frame.fail == "crash":
             raise RuntimeError("a bug in the processor")
         self.seen.append((camera, frame.sequence))
+        if frame.scene_start:
+            self.scene_starts.append(frame.sequence)
         return Outputs(moving_objects=json.dumps({"seq": frame.sequence}).encode(), egomotion=None)
 
 
@@ -149,8 +153,61 @@ def test_behind_bridge_processes_newest_and_counts_drops(endpoint):
         assert balanced(stats)
         assert stats["dropped_behind"] >= 20           # it skipped what it could not keep up with
         assert processor.seen[-1] == ("cam1", 29)      # ...and processed the newest frame
+        assert processor.scene_starts == [] and stats["scene_starts"] == 0  # no cut among the dropped
         pub.undeclare()
     finally:
+        client.close()
+        bridge.stop()
+
+
+class FlagProcessor(JsonProcessor):
+    """JsonProcessor that reads a payload's scene_start flag without decoding it (RuntimeProcessor's way)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.flag_reads = 0
+
+    def starts_scene(self, payload: bytes) -> bool:
+        self.flag_reads += 1
+        return b'"scene_start": true' in payload
+
+
+@pytest.mark.parametrize("processor_type", [JsonProcessor, FlagProcessor])
+def test_a_dropped_scene_start_marks_the_frame_that_replaced_it(endpoint, processor_type):
+    """With a scene's first frame dropped behind, the newest frame (the one processed instead) is answered
+    as a scene's first, so no pair spans the cut; a frame replaced after it passes the mark on too, and a
+    drop without a cut marks nothing."""
+    processor = processor_type()
+    processor.release.clear()
+    bridge = Bridge(processor=processor, zenoh_options=ZenohOptions(listen=(endpoint,)), bridge_id="t6").start()
+    client = open_session(ZenohOptions(connect=(endpoint,)))
+    try:
+        time.sleep(0.5)
+        pub = client.declare_publisher(keys.rgbd("cam5"), congestion_control=zenoh.CongestionControl.BLOCK)
+
+        def held(sequences, cut_at):
+            """Frames `sequences` sent while the worker holds the first; `cut_at` starts a scene."""
+            first, *rest = sequences
+            pub.put(frame("cam5", first), attachment=b"pub=A")
+            wait_until(lambda: bridge.status()["cameras"].get("cam5", {}).get("received") == first + 1)
+            time.sleep(0.1)  # the worker has taken `first` and waits on `release`
+            for seq in rest:
+                pub.put(frame("cam5", seq, **({"scene_start": True} if seq == cut_at else {})), attachment=b"pub=A")
+            wait_until(lambda: bridge.status()["cameras"]["cam5"]["received"] == sequences[-1] + 1)
+            processor.release.set()
+            wait_until(lambda: bridge.status()["cameras"]["cam5"]["pending"] == 0)
+            processor.release.clear()
+
+        held([0, 1, 2, 3], cut_at=1)       # the cut's frame 1 and frame 2 dropped: 3 starts the scene
+        held([4, 5, 6, 7], cut_at=None)    # dropped frames without a cut: nothing marked
+        stats = bridge.status()["cameras"]["cam5"]
+        assert [s for _, s in processor.seen] == [0, 3, 4, 7] and processor.scene_starts == [3]
+        assert stats["scene_starts"] == 1 and stats["dropped_behind"] == 4 and balanced(stats)
+        if processor_type is FlagProcessor:
+            assert processor.flag_reads == 3  # frames 1, 5, 6 read without a decode; 2 carried 1's mark
+        pub.undeclare()
+    finally:
+        processor.release.set()
         client.close()
         bridge.stop()
 
