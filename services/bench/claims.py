@@ -28,7 +28,8 @@ STABILISED_TOLERANCE = 0.1   # moving camera: |AP with the egomotion module − 
 # Which detector rows the detection claims read, per arm, in order of preference (the other mode only when a
 # plan did not run the first). The paper's protocol: "After pre-training, we freeze the feature layers after
 # view predictive learning, and only supervise the detector module; for the fully supervised baseline (from
-# random initialization), we train end-to-end" (Sec. 4.1). The report gives the fine-tuned rows beside them.
+# random initialization), we train end-to-end" (Sec. 4.1). A plan that runs the pretrained arms' fine-tuned rows
+# too (the tiny plan; `bench paper --detector-variants`) shows them beside; plan.JUDGED_VARIANTS are the first choices.
 CLAIM_DETECTOR_MODES = {"random": ("finetuned", "frozen"), "regression": ("frozen", "finetuned"),
                         "contrastive": ("frozen", "finetuned")}
 

@@ -55,6 +55,13 @@ DEFAULT_VARIANTS: tuple[tuple[str, str], ...] = (
     ("regression", "frozen"), ("regression", "finetuned"),
     ("contrastive", "frozen"), ("contrastive", "finetuned"),
 )
+# The rows the detection claims read (services.bench.claims.CLAIM_DETECTOR_MODES: the paper's protocol, pretrained
+# arms on frozen features and random init end to end). The small plan runs only these: the pretrained arms'
+# fine-tuned detectors are read by no claim and cost each seed ~8 h on the 2-core CPU (12 detectors of 800-1280
+# steps at ~2.5-3 s per step, three seeds time-sliced; session 24); `bench paper --detector-variants` adds them.
+JUDGED_VARIANTS: tuple[tuple[str, str], ...] = (
+    ("random", "finetuned"), ("regression", "frozen"), ("contrastive", "frozen"),
+)
 
 
 # Kinds of stage `BenchConfig.task_options` may give options to ("mapper": every stage that builds one;
@@ -153,6 +160,9 @@ class BenchConfig:
             raise BenchConfigError(f"label_draws {self.label_draws} at the smallest label budget {few} needs "
                                    f"{self.label_draws} disjoint sets of that many records, more than the "
                                    f"{self.train_episodes} training records")
+        if not self.detector_variants or len(set(self.detector_variants)) != len(self.detector_variants):
+            raise BenchConfigError(f"detector variants must be distinct and at least one, got "
+                                   f"{['/'.join(v) for v in self.detector_variants]}")
         for arm, mode in self.detector_variants:
             if arm not in ARMS or mode not in MODES:
                 raise BenchConfigError(f"detector variant ({arm!r}, {mode!r}): arm must be one of {ARMS} "
@@ -311,7 +321,7 @@ _PROFILES: dict[tuple[str, bool], dict] = {
     # contrastive - regression difference a per-draw spread (sd) of 0.026 / 0.055 / 0.035 by seed, against the
     # claim's margin of 0.02. With 4 draws the spread of the mean is halved.
     ("small", False): dict(train_episodes=64, val_episodes=8, test_episodes=64, label_budgets=(2, 8, None),
-                           label_draws=4,
+                           label_draws=4, detector_variants=JUDGED_VARIANTS,
                            rules=StageRules(pretrain=_plateau(100, 300, 3000), detector=_epochs(40, 800, 2000),
                                             flow=_plateau(100, 200, 2000),
                                             egomotion=_plateau(100, 1000, 3000, ema_decay=EMA_DECAY),

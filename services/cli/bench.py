@@ -63,6 +63,11 @@ def register(subparsers) -> None:
     p.add_argument("--label-draws", type=_positive_int, default=None, metavar="K",
                    help="train the smallest budget's detectors on K disjoint label sets (records [d*N, (d+1)*N)) and "
                         "report their mean (default: the preset's plan: small 4, tiny 1)")
+    p.add_argument("--detector-variants", type=_variant, nargs="+", default=None, metavar="ARM/MODE",
+                   help="the detector rows to train, ARM one of random, regression, contrastive and MODE frozen or "
+                        "finetuned, e.g. random/finetuned regression/frozen contrastive/frozen contrastive/finetuned "
+                        "(default: the preset's plan: small the rows the claims read, the paper's protocol; tiny "
+                        "and paper every pretrained arm frozen and fine-tuned too)")
     steps = p.add_argument_group("training length (default: each stage's stopping rule in the preset's plan)")
     for stage in STAGE_NAMES:
         steps.add_argument(f"--{stage}-steps", type=_positive_int, default=None, metavar="N",
@@ -99,6 +104,14 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _variant(text: str) -> tuple[str, str]:
+    """--detector-variants: ARM/MODE (checked further by BenchConfig)."""
+    arm, sep, mode = text.partition("/")
+    if not sep or not arm or not mode:
+        raise argparse.ArgumentTypeError(f"{text!r} is not ARM/MODE, e.g. contrastive/frozen")
+    return arm, mode
+
+
 def _json_object(text: str) -> dict:
     """--task-options / --world: a JSON object (checked further by BenchConfig)."""
     try:
@@ -117,6 +130,7 @@ def config_from_args(args: argparse.Namespace):
         "train_episodes": args.train_episodes, "test_episodes": args.test_episodes,
         "label_budgets": tuple(args.label_budgets) if args.label_budgets else None,
         "label_draws": args.label_draws,
+        "detector_variants": tuple(args.detector_variants) if args.detector_variants else None,
         "batch_size": args.batch_size, "task_options": args.task_options, "world": args.world}.items()
         if v is not None}
     config = plan_for(args.preset, seeds=tuple(range(args.seeds)), quick=args.quick, data_seed=args.data_seed,
