@@ -11,7 +11,31 @@ success; 2 with one line naming the problem otherwise.
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
+import threading
+import time
+
+
+def exit_with_parent(poll_s: float = 2.0) -> threading.Thread:
+    """Terminate this process (SIGTERM, as the parent's own clean-up would) once its parent is gone. Why: a
+    parent killed by a signal that skips its clean-up (SIGTERM, SIGKILL) left its workers training on, and a
+    rerun then started a second worker writing the same stage directories (session 24)."""
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(poll_s)
+        try:
+            print(f"[bench] parent process {parent} is gone: stopping this worker (a rerun resumes it)", flush=True)
+        except OSError:  # the log was the parent's pipe
+            pass
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    thread = threading.Thread(target=watch, name="n3dmap-bench-parent-watch", daemon=True)
+    thread.start()
+    return thread
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -23,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.threads < 1:
         parser.error(f"--threads must be >= 1, got {args.threads}")
 
+    exit_with_parent()
     import torch
 
     from core.errors import N3dmapError

@@ -1,0 +1,54 @@
+"""A seed worker stops when the `bench paper` process that started it is gone (services.bench.seed_worker.
+exit_with_parent), so a parent killed without its clean-up never leaves a worker training beside the rerun's.
+Real processes: a parent starts a child that watches it, the parent exits without stopping the child."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[3]
+
+CHILD = ("import time; from services.bench.seed_worker import exit_with_parent; exit_with_parent(poll_s=0.05); "
+         "print('watching', flush=True); time.sleep(60)")
+# The parent starts the child, waits until it watches, prints its pid and exits at once, leaving it running.
+PARENT = ("import subprocess, sys; child = subprocess.Popen([sys.executable, '-c', sys.argv[1]], "
+          "stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True); child.stdout.readline(); print(child.pid, flush=True)")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def test_a_worker_whose_parent_is_gone_stops():
+    parent = subprocess.run([sys.executable, "-c", PARENT, CHILD], capture_output=True, text=True, timeout=60,
+                            cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert parent.returncode == 0, parent.stderr
+    child = int(parent.stdout.strip())
+    try:
+        deadline = time.monotonic() + 10
+        while _alive(child) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not _alive(child), "the worker outlived its parent by 10 s"
+    finally:
+        if _alive(child):
+            os.kill(child, 9)
+
+
+def test_a_worker_with_its_parent_keeps_running():
+    child = subprocess.Popen([sys.executable, "-c", CHILD], stdout=subprocess.PIPE, text=True, cwd=REPO,
+                             env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        assert child.stdout.readline().strip() == "watching"
+        time.sleep(0.5)  # ten polls
+        assert child.poll() is None
+    finally:
+        child.kill()
+        child.wait(timeout=10)
