@@ -23,8 +23,9 @@ from core.moving.saliency import center_surround_score
 # "surface" — a surface of the object passes through the voxel (flow predicted over the voxels that hold
 # depth points spreads to all of them, whether their centres lie in the object or just outside it); the
 # centres scatter about the surface by ± half a voxel, so the centres' box is the object's (pad 0).
-# "centres" — the voxel's centre lies inside the object (the true flow of core.data.ground_truth.gt_flow);
-# the centres then span about a voxel less than the object (pad one voxel).
+# "centres" — the voxel's centre lies inside the object (a flow that moves only those: the true flow of
+# core.data.ground_truth.gt_flow until session 24, which now also moves the voxels holding only an object's
+# surface points, as a model's flow does); the centres then span about a voxel less than the object (pad one voxel).
 # Measured (n3dmap eval moving, small preset, a 300-step trained chain, development sets of 16 and 32
 # records): the model's boxes at AP3D@0.5 static / moving camera 0.112 / 0.088 with pad one voxel, 0.370 /
 # 0.343 with pad 0 (32 records: 0.111 / 0.079 → 0.354 / 0.346); the true flow's 0.306 / 0.569 with one voxel

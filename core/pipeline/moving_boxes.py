@@ -75,9 +75,10 @@ class MovingObjectsConfig:
     # boxes of whole objects — oversized components split or dropped, boxes grown to the prior away from
     # the camera (core.moving.amodal).
     size_prior: SizePrior | None = None
-    # What a voxel marked moving means (core.moving.detect_moving.MOVING_VOXEL_PAD): "surface" for flow a
-    # model predicts over the voxels that hold depth points (boxes of their centres, unpadded), "centres"
-    # for the true flow, which moves exactly the voxels whose centres lie in an object (padded one voxel).
+    # What a voxel marked moving means (core.moving.detect_moving.MOVING_VOXEL_PAD): "surface" for flow over
+    # the voxels that hold depth points (a model's, and the true flow of core.data.ground_truth: boxes of
+    # their centres, unpadded), "centres" for a flow that moves exactly the voxels whose centres lie in an
+    # object (padded one voxel).
     moving_voxels: str = "surface"
     # Voxels above this share of the speed threshold move when connected to one above it
     # (core.moving.detect_moving.DEFAULT_HYSTERESIS); 1: the threshold alone.

@@ -20,8 +20,12 @@ from core.pipeline.moving import MovingObjectsConfig, boxes_from_flow
 def oracle_boxes(record, t: int, grid, config: MovingObjectsConfig) -> dict:
     """The true stabilised flow and occupancy of pair (t, t+1) through the post-processing of `config`
     (a batch of one): core.pipeline.moving.boxes_from_flow's dict plus `flow` 1×3×Z×Y×X and `observed`
-    1×1×Z×Y×X. The true flow moves exactly the voxels whose centres lie in an object, so the boxes of
-    their centres are padded one voxel (`moving_voxels="centres"`, whatever `config` says)."""
+    1×1×Z×Y×X. The true flow moves the voxels that hold an object's content (core.data.ground_truth: its
+    centre inside the object, or only the object's surface points in it), as a model's flow does, so its
+    boxes are made as the model's are (`config.moving_voxels`, "surface" by default: unpadded). Measured on
+    the small report's 64 test records (session 24), AP3D@0.5 static / moving camera: 1.000 / 1.000 this way;
+    0.616 / 0.741 when the true flow moved only the voxels with centres inside (half of the voxels holding
+    the visible surface read as static) and its boxes were padded one voxel."""
     true_flow = gt_flow(record, t, grid)[None]                                  # 1×3×Z×Y×X
     xyz, valid = points_in_ref(record, t)                                       # the same ground plane rule
     ground = [fit_ground_plane(xyz[valid].double().numpy()) if config.ground_margin is not None else None]
@@ -30,6 +34,6 @@ def oracle_boxes(record, t: int, grid, config: MovingObjectsConfig) -> dict:
     viewpoints = camera_centres(cam_T_ref).float()                              # 1×V×3 camera centres in ref
     seen_by = (voxelize(xyz, grid, valid)[:, 0] > 0)[None]                     # 1×V×Z×Y×X, each view's points
     observed = seen_by.any(dim=1, keepdim=True).float()                        # 1×1×Z×Y×X (gt_occupancy)
-    out = boxes_from_flow(true_flow, observed, grid, replace(config, moving_voxels="centres"), ground=ground,
+    out = boxes_from_flow(true_flow, observed, grid, config, ground=ground,
                           viewpoints=viewpoints, seen_by=seen_by)
     return {**out, "flow": true_flow, "observed": observed}

@@ -147,3 +147,48 @@ def test_occupancy_and_free_space_against_point_loops(static_scene):
         assert free[ijk[2], ijk[1], ijk[0]] == 1.0
         checked += 1
     assert checked > 10
+
+
+def test_voxels_holding_only_a_moving_boxs_surface_move_with_it():
+    """The rendered surface lies on the box's faces, so voxels holding it may have their centre just outside
+    the box: they move with it when every depth point they hold is the box's (within the tolerance), and stay
+    static when they also hold another surface (here a wall beside the box). Checked against a per-point
+    loop over a hand-built record: one camera at ref looking along +z at a plane of depth 2.7 m, whose middle
+    is the front face of a 3.2 × 3.2 × 2 m box that moves by (1, 0, 0.5) m."""
+    from core.data.ground_truth import SURFACE_TOLERANCE_M, points_in_ref
+
+    H = W = 24  # points 0.34 m apart on the plane: each rim voxel of the face holds wall points too
+    world_T_ref = np.stack([_pose(0.4, [2.0, 0.0, -1.0])] * 2)
+    b0 = np.array([0.0, 0.0, 3.7, 3.2, 3.2, 2.0, 0.0])  # front face z = 2.7; voxel z ∈ [2, 3) has centre 2.5
+    b1 = b0 + np.array([1.0, 0.0, 0.5, 0.0, 0.0, 0.0, 0.0])
+    rec = _hand_record(world_T_ref, np.stack([b0, b1]), moving=True)
+    K = np.array([[8.0, 0, W / 2, 0], [0, 8.0, H / 2, 0], [0, 0, 1, 0], [0, 0, 0, 1]], np.float32)
+    rec.update(rgb=np.zeros((2, 1, H, W, 3), np.uint8), depth=np.full((2, 1, H, W), 2.7, np.float32),
+               pix_T_cam=K[None])
+    flow = gt_flow(rec, 0, GRID).numpy()
+    mask = gt_moving_mask(rec, 0, GRID).numpy()[0]
+
+    # The slow reference: which box each point is on (a box grown by the tolerance), voxel by voxel.
+    xyz, valid = points_in_ref(rec, 0)
+    labels: dict[tuple, set] = {}
+    lo, v = np.array(GRID.bounds_min), GRID.voxel_size
+    for p in xyz.reshape(-1, 3)[valid.reshape(-1)].double().numpy():
+        on_box = bool((np.abs(p - b0[:3]) <= b0[3:6] / 2 + SURFACE_TOLERANCE_M).all())
+        ijk = tuple(int(k) for k in np.floor((p - lo) / v))
+        labels.setdefault(ijk, set()).add(on_box)
+    want = np.zeros_like(flow)
+    moving = np.zeros(mask.shape, bool)
+    for ix in range(GRID.X):
+        for iy in range(GRID.Y):
+            for iz in range(GRID.Z):
+                p = _centre(ix, iy, iz)
+                if (np.abs(p - b0[:3]) <= b0[3:6] / 2).all() or labels.get((ix, iy, iz)) == {True}:
+                    moving[iz, iy, ix] = True
+                    want[:, iz, iy, ix] = (b1[:3] - b0[:3]) / GRID.voxel_size
+    surface_only = {k for k, s in labels.items() if s == {True}}
+    mixed = {k for k, s in labels.items() if s == {True, False}}
+    assert len(surface_only) == 4 and len(mixed) >= 4  # the face's middle 2×2 voxels; its rim beside the wall
+    assert all(not (np.abs(_centre(*k) - b0[:3]) <= b0[3:6] / 2).all() for k in surface_only)  # centres outside
+    assert np.abs(flow - want).max() < 1e-4 and np.array_equal(mask > 0, moving)
+    rec["box_moving"][:] = False
+    assert gt_moving_mask(rec, 0, GRID).sum() == 0
