@@ -4,6 +4,9 @@ Matching (per frame, per IoU threshold): detections are taken highest score firs
 input order); each one matches the not-yet-matched ground-truth box with the highest IoU if that
 IoU ≥ threshold, and is then a true positive; otherwise it is a false positive (so a duplicate
 detection of an already-matched box is a false positive). Each ground-truth box matches at most once.
+This is COCO's rule (pycocotools skips ground truth already matched); VOC's devkit instead takes the box of
+highest IoU overall and counts the detection false when that box is taken, which differs only where a
+detection overlaps two ground-truth boxes by the threshold.
 
 Accumulation: the true/false-positive flags of all frames are pooled and sorted by score; the
 precision–recall curve has one point per distinct score (tied scores enter together, so the curve
