@@ -9,6 +9,10 @@ Each iteration: match every source point to its nearest target point (KD-tree), 
     min_x Σ ((p_i × n_i)·ω + n_i·t − n_i·(q_i − p_i))²,  x = (ω, t)
 (small-angle rotation ω), then apply exp(ω) exactly (Rodrigues) and compose. Target normals come from
 PCA of each target point's `normal_neighbors` nearest neighbours (smallest-eigenvalue eigenvector).
+
+`icp_coarse_to_fine` runs it with a shrinking correspondence gate, each stage from the last one's pose (as
+Open3D's multi-scale ICP does): a loose gate finds the pose, a tight one keeps wrong matches (a moving car,
+a surface one frame does not see) out of the final least squares.
 """
 
 from __future__ import annotations
@@ -107,3 +111,20 @@ def icp_point_to_plane(source: np.ndarray, target: np.ndarray, *, init: np.ndarr
         if np.abs(x).sum() < tolerance:
             break
     return IcpResult(target_T_source=T, iterations=it, rmse=rmse, inlier_fraction=inliers)
+
+
+def icp_coarse_to_fine(source: np.ndarray, target: np.ndarray, *, max_distances: tuple[float, ...],
+                       init: np.ndarray | None = None, iterations: int = 30, normal_neighbors: int = 10,
+                       tolerance: float = 1e-6) -> IcpResult:
+    """`icp_point_to_plane` once per gate of `max_distances` (metres, decreasing), each stage starting from
+    the previous stage's pose; returns the last stage's result with `iterations` summed over the stages."""
+    if not max_distances or any(b > a for a, b in zip(max_distances, max_distances[1:])) or min(max_distances) <= 0:
+        raise ValueError(f"max_distances must be positive and non-increasing, got {list(max_distances)}")
+    result, total = None, 0
+    for gate in max_distances:
+        result = icp_point_to_plane(source, target, init=init if result is None else result.target_T_source,
+                                    iterations=iterations, max_distance=gate, normal_neighbors=normal_neighbors,
+                                    tolerance=tolerance)
+        total += result.iterations
+    return IcpResult(target_T_source=result.target_T_source, iterations=total, rmse=result.rmse,
+                     inlier_fraction=result.inlier_fraction)

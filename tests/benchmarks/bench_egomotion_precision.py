@@ -33,12 +33,12 @@ import time
 import numpy as np
 import torch
 
-from core.baselines.icp import icp_point_to_plane
+from core.baselines.icp import icp_coarse_to_fine
 from core.bundle import load_bundle
 from core.data.shards import ShardDataset
 from core.eval.egomotion_metrics import relative_pose_errors
 from core.eval.moving_protocol import camera_setting
-from core.eval.protocols.egomotion import _cloud
+from core.eval.protocols.egomotion import _cloud, icp_gates
 from core.eval.protocols.inputs import pair_inputs, record_batch
 from core.geometry import se3
 from core.geometry.camera import depth_to_points
@@ -166,7 +166,7 @@ def main() -> None:
         icps = []
         for p in pairs:
             src, tgt = _cloud(p["rec"], p["t1"], np.eye(4), grid), _cloud(p["rec"], p["t0"], np.eye(4), grid)
-            res = icp_point_to_plane(src, tgt, iterations=30, max_distance=max(1.0, 2 * grid.voxel_size))
+            res = icp_coarse_to_fine(src, tgt, iterations=30, max_distances=icp_gates(grid.voxel_size))
             icps.append(torch.from_numpy(res.target_T_source)[None])
         print(f"icp: {fmt(torch.cat(icps), gt)}")
     for path in args.bundle:

@@ -53,3 +53,41 @@ def test_icp_rejects_bad_clouds():
         icp_point_to_plane(np.zeros((10, 2)), np.zeros((10, 3)))
     with pytest.raises(ShapeError):
         icp_point_to_plane(np.zeros((3, 3)), np.zeros((10, 3)))
+
+
+def test_a_shrinking_gate_drops_the_wrong_matches_one_loose_gate_keeps():
+    """A structured scene plus a block that moves on its own (a car between the frames): with one loose gate
+    the block's points pull the pose off; the coarse-to-fine gates end within a tight gate of the true pose
+    and leave the block out. The same points, the same 1 m first gate."""
+    from core.baselines.icp import icp_coarse_to_fine
+
+    rng = np.random.default_rng(3)
+    scene = _scene(rng)
+    gt = np.eye(4)  # target_T_source: the camera's motion
+    gt[:3, :3] = Rotation.from_rotvec(np.deg2rad(1.5) * np.array([0.0, 1.0, 0.0])).as_matrix()
+    gt[:3, 3] = (0.3, 0.0, 0.5)
+    # the car's surface (a 2 × 1.5 × 2 m box's faces), in the target frame at t0
+    lo, hi = np.array([-3.0, 0.5, -2.0]), np.array([-1.0, 2.0, 0.0])
+    car = rng.uniform(lo, hi, size=(800, 3))
+    face = rng.integers(0, 6, size=len(car))
+    axis, side = face % 3, face // 3
+    car[np.arange(len(car)), axis] = np.where(side == 0, lo[axis], hi[axis])
+    target = np.concatenate([scene, car])
+    source_T_target = np.linalg.inv(gt)
+    moved_car = car + np.array([0.6, 0.0, 0.4])  # the car moved 0.72 m in the world meanwhile
+    source = np.concatenate([scene, moved_car]) @ source_T_target[:3, :3].T + source_T_target[:3, 3]
+    source = source + rng.normal(scale=0.005, size=source.shape)
+
+    def errors(T):
+        err = np.linalg.inv(gt) @ T
+        return np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1)), np.linalg.norm(err[:3, 3])
+
+    loose = icp_point_to_plane(source, target, iterations=60, max_distance=1.0)
+    staged = icp_coarse_to_fine(source, target, iterations=30, max_distances=(1.0, 0.5, 0.25))
+    rot_loose, trans_loose = errors(loose.target_T_source)
+    rot, trans = errors(staged.target_T_source)
+    assert trans < 0.02 and rot < np.deg2rad(0.05)
+    assert trans_loose > 3 * trans  # the loose gate alone is pulled toward the car's motion (0.10 m vs 0.004)
+    assert staged.iterations >= 3
+    with pytest.raises(ValueError, match="non-increasing"):
+        icp_coarse_to_fine(source, target, max_distances=(0.25, 1.0))
