@@ -26,7 +26,9 @@ from core.errors import ShapeError, check_shape
 def true_match_rank(queries: torch.Tensor, candidates: torch.Tensor) -> torch.Tensor:
     """1-based rank of each query's true candidate among all candidates by L2 distance.
 
-    queries: N×D, candidates: N×D (candidate i is the match of query i). Returns N int64.
+    queries: N×D, candidates: N×D (candidate i is the match of query i). Returns N int64. A query with any
+    non-finite distance (a NaN or inf feature) ranks last, N: comparisons with NaN are all False, so it would
+    otherwise have none ahead and count as a perfect retrieval.
     """
     check_shape("queries", queries, (None, None))
     check_shape("candidates", candidates, (queries.shape[0], queries.shape[1]))
@@ -34,7 +36,8 @@ def true_match_rank(queries: torch.Tensor, candidates: torch.Tensor) -> torch.Te
     dist = torch.cdist(q, c)                             # N×N, row i: query i to every candidate
     true = dist.diagonal().unsqueeze(1)                  # N×1
     ahead = (dist <= true).sum(dim=1) - 1                # others at least as close (self excluded)
-    return ahead + 1
+    broken = ~torch.isfinite(dist).all(dim=1)            # N
+    return torch.where(broken, torch.full_like(ahead, dist.shape[1]), ahead + 1)
 
 
 def precision_at_k(queries: torch.Tensor, candidates: torch.Tensor, ks=(1, 5, 10)) -> dict[str, float]:

@@ -39,6 +39,17 @@ def test_ties_do_not_help_the_query():
     assert true_match_rank(queries, candidates).tolist() == [3, 3, 3]
 
 
+def test_a_non_finite_feature_is_a_miss_not_a_hit():
+    feats = torch.randn(6, 4, generator=torch.Generator().manual_seed(0))
+    queries, candidates = feats.clone(), feats.clone()
+    queries[2, 1] = float("nan")     # query 2 broken
+    candidates[4, 0] = float("inf")  # candidate 4 broken: every query's row holds it
+    rank = true_match_rank(queries, candidates)
+    assert rank.tolist() == [6] * 6
+    assert precision_at_k(queries, candidates, ks=(1,))["p@1"] == 0.0
+    assert true_match_rank(feats, feats).tolist() == [1] * 6
+
+
 def test_extract_patches_2d_and_3d_against_loops():
     g = torch.Generator().manual_seed(2)
     feat2d = torch.randn(3, 10, 12, generator=g)
