@@ -6,8 +6,10 @@ threshold its magnitude, cluster the moving pixels into 2D connected components,
 component's pixels to 3D with the depth of frame t, keep the points near the component's median
 depth (segmenting the point cloud), and fit an oriented box to them. The stabilised variant first
 subtracts the flow the camera motion alone would induce on the static scene (given depth and the
-relative pose). Only the visible surface is ever seen, so boxes tend to be too small — the
-weakness the paper points out.
+relative pose). Only the visible surface is ever seen, so boxes fitted to it tend to be too small — the
+weakness the paper points out. With a `size_prior` the boxes are completed as the 3D methods' are
+(core.moving.amodal: oversized clusters split, each box grown to a whole object away from the camera and
+down to the ground plane), so that a comparison of the two measures the flow, not the box fitting.
 
 Conventions (docs/conventions.md#cameras-and-pixels): images H×W(×3), pixel centres at integer (u, v); 2D flow
 H×W×2 in pixels (du, dv) from t to t+1; depth H×W metres along Z, 0 = missing; `pix_T_cam` 4×4; `cam1_T_cam0`
@@ -25,7 +27,9 @@ from scipy import ndimage
 from core.errors import ShapeError
 from core.geometry import camera, se3
 from core.geometry.boxes import box_T_obj, points_in_boxes
+from core.moving.amodal import SizePrior, amodal_box, split_oversized
 from core.moving.boxfit import fit_box_to_points
+from core.moving.ground import ground_y_at
 from core.moving.components import to_numpy
 from core.moving.nms import nms_bev
 
@@ -110,7 +114,8 @@ def oracle_flow2d(depth0, pix_T_cam, cam1_T_cam0, boxes0_cam0, boxes1_cam0) -> n
 def moving_objects_from_flow2d(flow2d, depth0, pix_T_cam, *, threshold: float, min_pixels: int,
                                stabilise: bool = False, cam1_T_cam0=None, ref_T_cam0=None,
                                depth1=None, dt: float = 1.0, depth_tolerance: float = 1.0,
-                               surround_px: int = 4, nms_iou: float = 0.3) -> list[dict]:
+                               surround_px: int = 4, nms_iou: float = 0.3, size_prior: SizePrior | None = None,
+                               ground: np.ndarray | None = None, point_scale: float = 0.5) -> list[dict]:
     """Scored 3D boxes of the moving regions of a 2D flow field.
 
     flow2d: H×W×2 pixels (t → t+1), depth0: H×W (frame t), pix_T_cam: 4×4. threshold: flow
@@ -119,7 +124,10 @@ def moving_objects_from_flow2d(flow2d, depth0, pix_T_cam, *, threshold: float, m
     ref_T_cam0: 4×4 frame the boxes are returned in (default: ref = cam0). depth1: H×W depth of
     frame t+1, used to measure 3D velocity (else velocity is NaN). depth_tolerance: metres around a
     cluster's median depth that its points may lie within. surround_px: width of the 2D
-    center-surround ring.
+    center-surround ring. size_prior: complete each box to a whole object (core.moving.amodal, as the 3D
+    methods do; None: the visible points' box), with `ground` (4,) the ground plane in ref (None: the visible
+    vertical extent) and `point_scale` (metres) the scale amodal_box reads the points at (the 3D methods'
+    voxel size).
 
     Returns a list, best score first, of dicts: `box_ref` (7,), `score` (2D center-surround: moving
     fraction of the cluster's bounding rectangle minus that of the ring around it, in [−1, 1]),
@@ -152,18 +160,34 @@ def moving_objects_from_flow2d(flow2d, depth0, pix_T_cam, *, threshold: float, m
             continue
         pts_cam = xyz0[mask][near]                                           # P×3
         pts_ref = pts_cam @ ref_T_cam[:3, :3].T + ref_T_cam[:3, 3]
-        box = fit_box_to_points(pts_ref)
         score = _center_surround_2d(moving, region, surround_px)
         velocity = np.full(3, np.nan)
         if depth1 is not None:
             velocity = _velocity(flow2d, to_numpy(depth1), pix_T_cam, mask, near, pts_cam, cam0_T_cam1, dt,
                                  depth_tolerance)
             velocity = ref_T_cam[:3, :3] @ velocity
-        found.append(dict(box_ref=box, score=score, velocity_ref=velocity, num_pixels=int(mask.sum())))
+        for box in _boxes(pts_ref, size_prior, ground, point_scale, viewpoint=ref_T_cam[:3, 3]):
+            found.append(dict(box_ref=box, score=score, velocity_ref=velocity, num_pixels=int(mask.sum())))
     if not found:
         return []
     keep = nms_bev(np.stack([d["box_ref"] for d in found]), np.array([d["score"] for d in found]), nms_iou)
     return [found[i] for i in keep]
+
+
+def _boxes(pts_ref: np.ndarray, size_prior: SizePrior | None, ground: np.ndarray | None, point_scale: float, *,
+           viewpoint: np.ndarray) -> list[np.ndarray]:
+    """A cluster's lifted points P×3 (ref) -> its boxes: the visible points' box, or with a size prior the
+    amodal box of each piece that fits it (core.moving.detect_moving's rule for a component)."""
+    if size_prior is None:
+        return [fit_box_to_points(pts_ref)]
+    pieces, _ = split_oversized(pts_ref, size_prior, voxel=point_scale, pad=0.0)
+    boxes = []
+    for index in pieces:
+        piece = pts_ref[index]
+        centre = fit_box_to_points(piece)[:3]
+        boxes.append(amodal_box(piece, viewpoint=viewpoint, prior=size_prior, voxel=point_scale, pad=0.0,
+                                ground_y=None if ground is None else ground_y_at(ground, centre[0], centre[2])))
+    return boxes
 
 
 def _center_surround_2d(moving: np.ndarray, region: tuple, surround_px: int) -> float:

@@ -90,12 +90,15 @@ def oracle_flow2d_rig(record, t: int, view: int) -> np.ndarray:
 
 def moving_objects_2p5d_rig(record, t: int, *, flow_source: str, stabilise: bool, threshold_px: float,
                             min_pixels: int, dt: float, nms_iou: float = 0.3,
-                            grid: GridConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+                            grid: GridConfig | None = None, size_prior=None,
+                            ground: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The 2.5D baseline (core.baselines.flow2d) on every view of the pair (t, t+1), boxes lifted to
     ref_t and merged across views by BEV NMS. flow_source: "farneback" or "oracle" (ground-truth 2D
     flow); stabilise: subtract the flow the camera motion induces (with the true relative pose);
     grid: keep only boxes whose centre lies in it — the region the ground truth (`gt_moving_boxes`) and
     the 3D methods' boxes cover, so that a right detection beyond the map is not a false positive.
+    size_prior / ground: amodal boxes as the 3D methods' (core.baselines.flow2d; needs `grid`, whose voxel
+    size is the points' scale); None: the visible points' boxes.
 
     Returns (boxes D×7 in ref_t, scores D), best first.
     """
@@ -113,7 +116,8 @@ def moving_objects_2p5d_rig(record, t: int, *, flow_source: str, stabilise: bool
         found = moving_objects_from_flow2d(
             flow, record["depth"][t, v], record["pix_T_cam"][v], threshold=threshold_px, min_pixels=min_pixels,
             stabilise=stabilise, cam1_T_cam0=relative(world_T_cam1, world_T_cam0).numpy(),
-            ref_T_cam0=relative(world_T_ref, world_T_cam0).numpy(), dt=dt, nms_iou=nms_iou)
+            ref_T_cam0=relative(world_T_ref, world_T_cam0).numpy(), dt=dt, nms_iou=nms_iou,
+            size_prior=size_prior, ground=ground, point_scale=0.5 if grid is None else grid.voxel_size)
         boxes += [d["box_ref"] for d in found]
         scores += [d["score"] for d in found]
     if not boxes:

@@ -104,3 +104,30 @@ def test_stabilisation_removes_the_camera_motion():
     np.testing.assert_allclose(stable[0]["box_ref"][:3], (pts.min(0) + pts.max(0)) / 2, atol=1e-6)
     with pytest.raises(ValueError, match="cam1_T_cam0"):
         moving_objects_from_flow2d(flow, depth0, K, threshold=1.0, min_pixels=30, stabilise=True)
+
+
+def test_a_size_prior_completes_the_lifted_face_as_the_3d_methods_do():
+    """The square is the visible face of a larger object: with a size prior the box is the 3D methods' amodal
+    box of the same lifted points (core.moving.amodal) — grown away from the camera, down to the ground — and
+    without one the face's own thin box."""
+    from core.moving.amodal import SizePrior, amodal_box
+
+    _, _, depth0, depth1 = image_pair()
+    pts = square_points()
+    shift_m = SHIFT_U * 5.0 / F
+    lo, hi = pts.min(0) - 1e-6, pts.max(0) + 1e-6
+    box0 = np.concatenate([(lo + hi) / 2, hi - lo + [0, 0.02, 0.02], [0.0]])[None]
+    flow = oracle_flow2d(depth0, K, np.eye(4), box0, box0 + [[shift_m, 0, 0, 0, 0, 0, 0]])
+    prior = SizePrior.from_size(4.0, 2.0, 2.5)
+    ground = np.array([0.0, 1.0, 0.0, -2.0])  # y = 2 m below the camera (y down)
+    (visible,) = moving_objects_from_flow2d(flow, depth0, K, threshold=1.0, min_pixels=30)
+    (whole,) = moving_objects_from_flow2d(flow, depth0, K, threshold=1.0, min_pixels=30, size_prior=prior,
+                                          ground=ground, point_scale=0.5)
+    want = amodal_box(pts, viewpoint=np.zeros(3), prior=prior, voxel=0.5, pad=0.0, ground_y=2.0)
+    np.testing.assert_allclose(whole["box_ref"], want, atol=1e-9)
+    box = whole["box_ref"]
+    half_depth = 0.5 * (box[3] * abs(np.sin(box[6])) + box[5] * abs(np.cos(box[6])))  # bird's-eye extent along z
+    assert box[2] - half_depth == pytest.approx(5.0, abs=0.05)                 # its near face is the square
+    assert box[2] > visible["box_ref"][2] + 0.5                                 # it grew away from the camera
+    assert box[1] + 0.5 * box[4] == pytest.approx(2.0, abs=1e-6)                # and stands on the ground
+    assert whole["score"] == visible["score"]
