@@ -42,7 +42,7 @@ def register(subparsers) -> None:
     p = kinds.add_parser(
         "paper", help="the paper's experiments end to end: data, pretraining, downstream modules, report",
         description="Generate synthetic data, pretrain (view-contrastive and view-regression; random init as the "
-                    "third arm), train the detector at several label budgets (frozen and fine-tuned), 3D flow and "
+                    "third arm), train the detector at several label budgets (--detector-variants), 3D flow and "
                     "egomotion, evaluate everything and write REPORT_DIR/report.md, metrics.json and plots. "
                     "Rerunning continues a cut-off run.")
     p.add_argument("--preset", default="small", choices=("tiny", "small", "paper"), help="model/grid/data preset")
