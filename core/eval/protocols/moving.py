@@ -27,12 +27,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from core.data.ground_truth import points_in_ref
 from core.errors import DataError
 from core.eval.method_ap import MethodAP
 from core.eval.moving_protocol import camera_setting, gt_moving_boxes, moving_objects_2p5d_rig
 from core.eval.protocols.inputs import pair_inputs, record_batch
 from core.eval.protocols.moving_oracle import oracle_boxes
-from core.data.ground_truth import points_in_ref
 from core.moving.amodal import SizePrior, estimate_size_prior
 from core.moving.ground import fit_ground_plane
 from core.pipeline.moving import MovingObjectsConfig, moving_objects

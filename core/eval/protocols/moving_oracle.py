@@ -6,8 +6,6 @@ Frames (docs/conventions.md#frames): everything is in ref_t of the pair (t, t+1)
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import torch
 
 from core.data.ground_truth import gt_flow, points_in_ref
