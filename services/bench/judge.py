@@ -29,10 +29,13 @@ report (`FLOORS`).
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Callable, Mapping
 
 MIN_SEEDS = 3
+# Every comparison allows this much float round-off at its limit (|0.3 − 0.4| is 0.10000000000000003 > 0.1).
+ROUNDING = 1e-12
 HOLDS, FAILS, UNDETERMINED, NOT_JUDGED = "holds", "does not hold", "undetermined", "not judged"
 
 
@@ -77,7 +80,7 @@ class Better:
         if _below_meaning(self.floor, a, b):
             return "vacuous"        # a gap between two meaningless numbers is no evidence either way
         gain = (b - a) if self.floor.lower_is_better else (a - b)
-        return "agree" if gain >= self.floor.margin - 1e-12 else "disagree"
+        return "agree" if gain >= self.floor.margin - ROUNDING else "disagree"
 
 
 @dataclass(frozen=True)
@@ -97,7 +100,7 @@ class Positive:
             return "missing"
         if self.of and _below_meaning(self.floor, *(v[n] for n in self.of)):
             return "vacuous"
-        return "agree" if x >= self.floor.margin - 1e-12 else "disagree"
+        return "agree" if x >= self.floor.margin - ROUNDING else "disagree"
 
 
 @dataclass(frozen=True)
@@ -114,7 +117,7 @@ class AtLeast:
         a = v.get(self.a)
         if not _finite(a):
             return "missing"
-        return "agree" if a >= self.target else "disagree"
+        return "agree" if a >= self.target - ROUNDING else "disagree"
 
 
 @dataclass(frozen=True)
@@ -132,7 +135,7 @@ class RatioAtMost:
         a, b = v.get(self.a), v.get(self.b)
         if not _finite(a, b):
             return "missing"
-        return "agree" if a <= self.ratio * b else "disagree"
+        return "agree" if a <= self.ratio * b + ROUNDING else "disagree"
 
 
 @dataclass(frozen=True)
@@ -153,7 +156,7 @@ class WithinOf:
             return "missing"
         if _below_meaning(self.floor, a, b):
             return "vacuous"        # two zeros are "within 0.1" of each other and say nothing
-        return "agree" if abs(a - b) <= self.tolerance else "disagree"
+        return "agree" if abs(a - b) <= self.tolerance + ROUNDING else "disagree"
 
 
 Condition = Better | Positive | AtLeast | RatioAtMost | WithinOf
@@ -201,7 +204,8 @@ def derive(per_seed: Mapping[str, dict], name: str, fn: Callable[..., float], *a
 
 
 def _finite(*values) -> bool:
-    return all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in values)
+    """Every value a finite real number (numpy scalars too; a bool is no number here)."""
+    return all(isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v) for v in values)
 
 
 def _below_meaning(floor: Floor, *values: float) -> bool:

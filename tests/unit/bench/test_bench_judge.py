@@ -116,6 +116,22 @@ def test_lower_is_better_and_absolute_targets():
     assert judge([RatioAtMost("m", "icp", 1.5)], ego).verdict == FAILS
 
 
+def test_a_value_exactly_at_a_limit_passes_despite_float_round_off():
+    """|0.3 − 0.4| is 0.10000000000000003 in floats: exactly the tolerance, so within it, as Better's margins
+    allow; and numpy scalars are numbers."""
+    import numpy as np
+
+    near = seeds(m=[0.3, 0.3, 0.3], g=[0.4, 0.4, 0.4])
+    assert judge([WithinOf("m", "g", 0.1, AP)], near).verdict == HOLDS
+    near["1"]["m"] = 0.29
+    assert judge([WithinOf("m", "g", 0.1, AP)], near).verdict == FAILS
+    assert judge([RatioAtMost("m", "icp", 1.5)], seeds(m=[0.3, 0.3, 0.3], icp=[0.2, 0.2, 0.2])).verdict == HOLDS
+    assert judge([AtLeast("occ", 0.95)], seeds(occ=[0.19 * 5] * 3)).verdict == HOLDS  # 0.9499999999999998
+    typed = seeds(occ=[0.96, 0.97, 0.98])
+    typed["0"]["occ"] = np.float32(0.96)
+    assert judge([AtLeast("occ", 0.95)], typed).verdict == HOLDS
+
+
 def _result(c_few, r_few, n_few, c_all, n_all, *, ret=(0.30, 0.10), epe=(3.3, 5.5, 7.0)):
     det = {"random/finetuned/2": n_few, "random/finetuned/all": n_all, "regression/finetuned/2": r_few,
            "regression/finetuned/all": 0.5, "contrastive/finetuned/2": c_few, "contrastive/finetuned/all": c_all}
