@@ -26,17 +26,19 @@ from core.errors import ShapeError, check_shape
 def true_match_rank(queries: torch.Tensor, candidates: torch.Tensor) -> torch.Tensor:
     """1-based rank of each query's true candidate among all candidates by L2 distance.
 
-    queries: N×D, candidates: N×D (candidate i is the match of query i). Returns N int64. A query with any
-    non-finite distance (a NaN or inf feature) ranks last, N: comparisons with NaN are all False, so it would
-    otherwise have none ahead and count as a perfect retrieval.
+    queries: N×D, candidates: N×D (candidate i is the match of query i). Returns N int64. A query whose
+    distance to its own match is not finite (a NaN or inf feature on either side) ranks last, N: comparisons
+    with NaN are all False, so it would otherwise have none ahead and count as a perfect retrieval; another
+    candidate with a non-finite distance is never ahead of a finite match.
     """
     check_shape("queries", queries, (None, None))
     check_shape("candidates", candidates, (queries.shape[0], queries.shape[1]))
     q, c = queries.double(), candidates.double()
     dist = torch.cdist(q, c)                             # N×N, row i: query i to every candidate
+    broken = ~torch.isfinite(dist.diagonal())            # N: the match's own distance is NaN or inf
+    dist = torch.where(torch.isfinite(dist), dist, torch.full_like(dist, float("inf")))
     true = dist.diagonal().unsqueeze(1)                  # N×1
     ahead = (dist <= true).sum(dim=1) - 1                # others at least as close (self excluded)
-    broken = ~torch.isfinite(dist).all(dim=1)            # N
     return torch.where(broken, torch.full_like(ahead, dist.shape[1]), ahead + 1)
 
 

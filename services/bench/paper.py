@@ -147,7 +147,7 @@ def _run_seed_workers(out: Path, config: BenchConfig, plan: ThreadPlan, log: Cal
                 with open(log_path, "a") as f:
                     proc = subprocess.Popen(
                         [sys.executable, "-m", "services.bench.seed_worker", "--out", str(out), "--seed", str(seed),
-                         "--threads", str(plan.threads)], stdout=f, stderr=subprocess.STDOUT, env=env,
+                         "--threads", str(plan.threads), "--parent-pid", str(os.getpid())], stdout=f, stderr=subprocess.STDOUT, env=env,
                         cwd=str(Path(__file__).resolve().parents[2]))
                 running[seed] = (proc, log_path)
                 log(f"[bench] seed {seed}: worker pid {proc.pid}, {plan.threads} thread(s), log {log_path}")

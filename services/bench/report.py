@@ -171,8 +171,9 @@ def _moving_section(report: Report, mov: dict, config: BenchConfig) -> None:
                 f"{agg.fmt(mov['pairs_moving'], 0)}. Ours: 3D flow over each pretraining's features, or over the "
                 "input volumes (n3dmap's default), stabilised with the true poses or with the egomotion module; 2.5D: 2D optical flow (Farneback; "
                 "or the true 2D flow for the oracle), thresholded, clustered, lifted with depth, per view. Every "
-                "method's boxes are amodal by the same rule (a size prior each estimates from its own components, "
-                "no labels; the 2.5D ones from their stabilised variant's), so the rows compare flows, not box fits.")
+                "method's boxes are completed to whole objects the same way (a size prior each estimates from its own "
+                "components, no labels, the 2.5D ones from their stabilised variant's; split, grown away from the "
+                "camera, down to the ground) — only the 3D methods also take a heading from coherent 3D flow.")
     for setting in ("static", "moving"):
         rows = [[m, agg.fmt(v["ap"]), agg.fmt(v.get("ap_iou025")), agg.fmt(v["gt_boxes"], 0)]
                 for m, v in mov[setting].items()]

@@ -18,11 +18,12 @@ import threading
 import time
 
 
-def exit_with_parent(poll_s: float = 2.0) -> threading.Thread:
-    """Terminate this process (SIGTERM, as the parent's own clean-up would) once its parent is gone. Why: a
-    parent killed by a signal that skips its clean-up (SIGTERM, SIGKILL) left its workers training on, and a
-    rerun then started a second worker writing the same stage directories (session 24)."""
-    parent = os.getppid()
+def exit_with_parent(parent: int | None = None, poll_s: float = 2.0) -> threading.Thread:
+    """Terminate this process (SIGTERM, as the parent's own clean-up would) once its parent — pid `parent`
+    (the parent passes its own: one read here could already be an adopter's), else the current parent — is
+    gone. Why: a parent killed by a signal that skips its clean-up (SIGTERM, SIGKILL) left its workers
+    training on, and a rerun then started a second worker writing the same stage directories (session 24)."""
+    parent = os.getppid() if parent is None else parent
 
     def watch() -> None:
         while os.getppid() == parent:
@@ -43,11 +44,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", required=True, help="the benchmark's REPORT_DIR")
     parser.add_argument("--seed", type=int, required=True)
     parser.add_argument("--threads", type=int, required=True, help="torch threads of this process")
+    parser.add_argument("--parent-pid", type=int, default=None,
+                        help="stop when this process is gone (default: the parent at start-up)")
     args = parser.parse_args(argv)
     if args.threads < 1:
         parser.error(f"--threads must be >= 1, got {args.threads}")
 
-    exit_with_parent()
+    exit_with_parent(args.parent_pid)
     import torch
 
     from core.errors import N3dmapError

@@ -23,7 +23,9 @@ was about a third of a step, and one core could not keep up with a 10 Hz camera.
 
 A cut is never paired across: a frame replaced in its slot that started a scene (`scene_start`) passes the
 mark on to the frame that replaced it, which is then answered like a camera's first frame (else, with the
-cut's first frame dropped behind, the next frame would pair with the last frame of the scene before).
+cut's first frame dropped behind, the next frame would pair with the last frame of the scene before); a
+frame carrying a cut that is then not processed (malformed, refused, failed) passes it on to the camera's
+next processed frame.
 
 Publisher restarts are recognised by the publisher id each camera puts in the sample attachment
 (`pub=<id>`): a new id resets that camera's state instead of reading as out-of-order frames.
@@ -136,6 +138,9 @@ class Bridge:
         self._worker: threading.Thread | None = None
         self._lookahead: threading.Thread | None = None
         self._taken: dict[str, Parked] = {}  # per camera: the frame the worker took last
+        # Cameras whose latest cut reached no processed frame (the frame carrying it was malformed, refused or
+        # failed): their next processed frame starts the scene. Worker thread only.
+        self._pending_cut: set[str] = set()
         self.lookahead = lookahead and hasattr(processor, "encode_ahead")
         self._session: zenoh.Session | None = None
         self._declared: list = []
@@ -270,9 +275,16 @@ class Bridge:
                     parked.done.set()
                     self._cond.notify_all()
 
+    def _carry_cut(self, camera: str, parked: Parked) -> None:
+        """`parked` will not be processed: a cut it carries passes to the camera's next processed frame."""
+        if parked.follows_cut or self._starts_scene(parked):
+            self._pending_cut.add(camera)
+
     def _starts_scene(self, parked: Parked) -> bool:
-        """Whether `parked` (about to be replaced unprocessed) starts a scene; a payload that does not
-        decode starts none. Runs on zenoh's thread: a flag read, not a decode, when the processor can."""
+        """Whether `parked` (about to go unprocessed) starts a scene: its decoded frame's flag, else the flag
+        read from its payload (`starts_scene`, which reads it even from a frame that fails validation), else a
+        decode's; a payload whose flag cannot be read starts none. On zenoh's thread (a replaced frame) it is
+        a flag read, not a decode, when the processor can."""
         frame = parked.frame
         if frame is not None:
             return bool(getattr(frame, "scene_start", False))
@@ -333,6 +345,7 @@ class Bridge:
         if parked.malformed is not None:
             log.warning("malformed frame from camera %s: %s", camera, parked.malformed)
             self.accounting.update(camera, malformed=1)
+            self._carry_cut(camera, parked)
             return
         frame = parked.frame
         if getattr(frame, "camera_id", camera) not in ("", camera):
@@ -345,6 +358,7 @@ class Bridge:
             log.info("camera %s: publisher restarted (%s → %s); state reset", camera, state.publisher_id, publisher)
             self.accounting.update(camera, publisher_restarts=1)
             state = self._states[camera] = CameraState()
+            self._pending_cut.discard(camera)  # a new publisher's first frame pairs with nothing anyway
         state.publisher_id = publisher
         seq = int(frame.sequence)
         kind = state.verdict(seq)
@@ -352,6 +366,8 @@ class Bridge:
             log.info("camera %s: %s frame %d (last %d)", camera, kind, seq, state.last_sequence)
             self.accounting.update(camera, dropped=1, **{f"dropped_{kind}": 1})
             return
+        if camera in self._pending_cut and not getattr(frame, "scene_start", False):
+            frame = parked.frame = mark_scene_start(frame)  # a copy for a View: the look-ahead's work is redone
         try:
             if parked.ahead is not None:
                 outputs = self.processor.process(camera, state, frame, parked.ahead)
@@ -360,7 +376,12 @@ class Bridge:
         except MalformedFrame as e:  # decoded, but the processor cannot answer it (e.g. its clock went back)
             log.warning("malformed frame %d from camera %s: %s", seq, camera, e)
             self.accounting.update(camera, malformed=1)
+            self._carry_cut(camera, parked)
             return
+        except Exception:
+            self._carry_cut(camera, parked)
+            raise
+        self._pending_cut.discard(camera)
         state.advance(frame)
         self._publish(keys.moving_objects(camera), outputs.moving_objects)
         self._publish(keys.egomotion(camera), outputs.egomotion)

@@ -58,8 +58,9 @@ class MovingEvalConfig:
     min_pixels: int = 15           # smallest 2D cluster kept (2.5D baselines)
     min_points: int = 10           # depth points an object needs to count as ground truth
     baselines: bool = True         # also run the 2.5D baselines (slower)
-    # "auto": each 3D method's prior from its own components over the evaluated pairs (no labels);
-    # None: visible boxes; a SizePrior: that prior for both 3D methods.
+    # "auto": each 3D method's prior from its own components over the evaluated pairs (no labels), each 2.5D
+    # flow source's from its stabilised variant's (baseline_priors); None: visible boxes for every method;
+    # a SizePrior: that prior for every method.
     size_prior: SizePrior | str | None = "auto"
 
 

@@ -6,8 +6,9 @@ post-processing and the 2.5D baselines (Farneback / true 2D flow, unstabilised a
 against the same moving ground-truth boxes at 3D IoU 0.25 / 0.33 / 0.5.
 
 Boxes are amodal by default (`--size-prior auto`, core.moving.amodal): for each 3D method a size prior
-is estimated from that method's own components over the evaluated pairs — no labels.
-`--size-prior none` keeps the visible boxes; `--size-prior L W H` gives the prior in metres.
+is estimated from that method's own components over the evaluated pairs — no labels — and for each 2.5D
+flow source from its stabilised variant's clusters (both variants use it). `--size-prior none` keeps the
+visible boxes; `--size-prior L W H` gives the prior in metres. Every method, 2.5D included, reads it.
 """
 
 from __future__ import annotations
@@ -50,9 +51,10 @@ def register(kinds) -> None:
                         help="depth points an object needs to count as ground truth")
     parser.add_argument("--no-baselines", action="store_true", help="skip the 2.5D baselines (faster)")
     parser.add_argument("--size-prior", nargs="+", default=["auto"], metavar="auto|none|L W H",
-                        help="amodal boxes: 'auto' (default) estimates each method's object size from its own "
-                             "components over these pairs (no labels), 'none' keeps the visible boxes, three "
-                             "numbers give length, width and height in metres")
+                        help="amodal boxes for every method, 2.5D baselines included: 'auto' (default) estimates "
+                             "each 3D method's object size from its own components over these pairs (no labels) and "
+                             "each 2.5D flow source's from its stabilised variant's, 'none' keeps the visible boxes, "
+                             "three numbers give length, width and height in metres")
     add_rerun_option(parser)
     parser.set_defaults(func=run)
 
@@ -88,7 +90,7 @@ def build_report(bundle, records, config: MovingEvalConfig = MovingEvalConfig(),
                               "box_occupancy": objects.occupancy, "ground_margin_voxels": objects.ground_margin,
                               "flow_threshold_px": config.threshold_px, "min_pixels": config.min_pixels,
                               "gt_min_points": config.min_points,
-                              "size_prior": "auto (per method, from its own components)" if size_prior == "auto"
+                              "size_prior": "auto (per 3D method from its own components; per 2.5D flow source from its stabilised variant's)" if size_prior == "auto"
                               else (None if size_prior is None else size_prior.to_dict())})
     metrics = {cam: {m: a.summary() for m, a in per.items()} for cam, per in result["acc"].items()}
     report.metrics = {"moving": metrics, "moving_pairs": result["pairs"], "size_priors": result["size_priors"]}

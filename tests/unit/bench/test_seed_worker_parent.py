@@ -42,6 +42,22 @@ def test_a_worker_whose_parent_is_gone_stops():
             os.kill(child, 9)
 
 
+def test_a_worker_told_its_parent_stops_even_if_that_parent_was_gone_at_start_up():
+    """The parent passes its pid: a worker that starts after its parent died (adopted already) still stops."""
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True,
+                          timeout=30).stdout.strip()
+    child = subprocess.Popen([sys.executable, "-c", CHILD.replace("exit_with_parent(poll_s=0.05)",
+                                                                   f"exit_with_parent({int(gone)}, poll_s=0.05)")],
+                             stdout=subprocess.PIPE, text=True, cwd=REPO, env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        child.wait(timeout=10)
+        assert child.returncode == -15  # SIGTERM
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait(timeout=10)
+
+
 def test_a_worker_with_its_parent_keeps_running():
     child = subprocess.Popen([sys.executable, "-c", CHILD], stdout=subprocess.PIPE, text=True, cwd=REPO,
                              env={**os.environ, "PYTHONPATH": str(REPO)})

@@ -40,13 +40,14 @@ def test_ties_do_not_help_the_query():
 
 
 def test_a_non_finite_feature_is_a_miss_not_a_hit():
+    """A broken query, or a broken match, ranks last; a broken candidate does not hurt the other queries."""
     feats = torch.randn(6, 4, generator=torch.Generator().manual_seed(0))
     queries, candidates = feats.clone(), feats.clone()
     queries[2, 1] = float("nan")     # query 2 broken
-    candidates[4, 0] = float("inf")  # candidate 4 broken: every query's row holds it
+    candidates[4, 0] = float("inf")  # candidate 4 broken: query 4's match, and in every other query's row
     rank = true_match_rank(queries, candidates)
-    assert rank.tolist() == [6] * 6
-    assert precision_at_k(queries, candidates, ks=(1,))["p@1"] == 0.0
+    assert rank.tolist() == [1, 1, 6, 1, 6, 1]
+    assert precision_at_k(queries, candidates, ks=(1,))["p@1"] == 4 / 6
     assert true_match_rank(feats, feats).tolist() == [1] * 6
 
 

@@ -38,6 +38,7 @@ class JsonProcessor:
         self.scene_starts: list[int] = []  # the processed frames that came marked as a scene's first
         self.release = threading.Event()
         self.release.set()
+        self.entered = threading.Event()  # set when `process` starts (before it waits on `release`)
 
     def decode(self, payload: bytes):
         try:
@@ -49,6 +50,7 @@ class JsonProcessor:
             raise MalformedFrame(f"not a frame: {e}") from None
 
     def process(self, camera, state, frame):
+        self.entered.set()
         self.release.wait(timeout=10)
         time.sleep(self.delay_s)
         if frame.fail == "refuse":
@@ -175,8 +177,8 @@ class FlagProcessor(JsonProcessor):
 @pytest.mark.parametrize("processor_type", [JsonProcessor, FlagProcessor])
 def test_a_dropped_scene_start_marks_the_frame_that_replaced_it(endpoint, processor_type):
     """With a scene's first frame dropped behind, the newest frame (the one processed instead) is answered
-    as a scene's first, so no pair spans the cut; a frame replaced after it passes the mark on too, and a
-    drop without a cut marks nothing."""
+    as a scene's first, so no pair spans the cut; a frame replaced after it passes the mark on too, a drop
+    without a cut marks nothing, and a marked frame the processor refuses passes the mark to the next one."""
     processor = processor_type()
     processor.release.clear()
     bridge = Bridge(processor=processor, zenoh_options=ZenohOptions(listen=(endpoint,)), bridge_id="t6").start()
@@ -185,26 +187,33 @@ def test_a_dropped_scene_start_marks_the_frame_that_replaced_it(endpoint, proces
         time.sleep(0.5)
         pub = client.declare_publisher(keys.rgbd("cam5"), congestion_control=zenoh.CongestionControl.BLOCK)
 
-        def held(sequences, cut_at):
-            """Frames `sequences` sent while the worker holds the first; `cut_at` starts a scene."""
+        def held(sequences, extra=None):
+            """Frames `sequences` sent while the worker holds the first; `extra`: {sequence: payload fields}."""
             first, *rest = sequences
+            processor.entered.clear()
             pub.put(frame("cam5", first), attachment=b"pub=A")
-            wait_until(lambda: bridge.status()["cameras"].get("cam5", {}).get("received") == first + 1)
-            time.sleep(0.1)  # the worker has taken `first` and waits on `release`
+            assert processor.entered.wait(10)  # the worker has taken `first` and waits on `release`
             for seq in rest:
-                pub.put(frame("cam5", seq, **({"scene_start": True} if seq == cut_at else {})), attachment=b"pub=A")
+                pub.put(frame("cam5", seq, **(extra or {}).get(seq, {})), attachment=b"pub=A")
             wait_until(lambda: bridge.status()["cameras"]["cam5"]["received"] == sequences[-1] + 1)
             processor.release.set()
             wait_until(lambda: bridge.status()["cameras"]["cam5"]["pending"] == 0)
             processor.release.clear()
 
-        held([0, 1, 2, 3], cut_at=1)       # the cut's frame 1 and frame 2 dropped: 3 starts the scene
-        held([4, 5, 6, 7], cut_at=None)    # dropped frames without a cut: nothing marked
+        cut = {"scene_start": True}
+        held([0, 1, 2, 3], {1: cut})       # the cut's frame 1 and frame 2 dropped: 3 starts the scene
+        held([4, 5, 6, 7])                 # dropped frames without a cut: nothing marked
+        held([8, 9, 10], {9: cut, 10: {"fail": "refuse"}})  # 9 dropped, 10 carries its mark and is refused
+        processor.release.set()
+        pub.put(frame("cam5", 11), attachment=b"pub=A")     # ... so 11 starts the scene
+        wait_until(lambda: bridge.status()["cameras"]["cam5"]["processed"] == 6
+                   and bridge.status()["cameras"]["cam5"]["pending"] == 0)
         stats = bridge.status()["cameras"]["cam5"]
-        assert [s for _, s in processor.seen] == [0, 3, 4, 7] and processor.scene_starts == [3]
-        assert stats["scene_starts"] == 1 and stats["dropped_behind"] == 4 and balanced(stats)
+        assert [s for _, s in processor.seen] == [0, 3, 4, 7, 8, 11] and processor.scene_starts == [3, 11]
+        assert stats["scene_starts"] == 2 and stats["dropped_behind"] == 5 and stats["malformed"] == 1
+        assert balanced(stats)
         if processor_type is FlagProcessor:
-            assert processor.flag_reads == 3  # frames 1, 5, 6 read without a decode; 2 carried 1's mark
+            assert processor.flag_reads == 4  # frames 1, 5, 6, 9 read without a decode; 2 and 10 carried a mark
         pub.undeclare()
     finally:
         processor.release.set()
