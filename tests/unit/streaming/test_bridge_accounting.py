@@ -141,8 +141,7 @@ def test_behind_bridge_processes_newest_and_counts_drops(endpoint):
         time.sleep(0.5)
         pub = client.declare_publisher(keys.rgbd("cam1"), congestion_control=zenoh.CongestionControl.BLOCK)
         pub.put(frame("cam1", 0), attachment=b"pub=A")
-        wait_until(lambda: bridge.status()["cameras"].get("cam1", {}).get("received") == 1)
-        time.sleep(0.1)  # the worker has taken frame 0 and waits on `release`
+        assert processor.entered.wait(10)  # the worker has taken frame 0 and waits on `release`
         for seq in range(1, 30):
             pub.put(frame("cam1", seq), attachment=b"pub=A")
         wait_until(lambda: bridge.status()["cameras"]["cam1"]["received"] == 30)
