@@ -116,20 +116,24 @@ def gt_free(record: Record, t: int, grid: GridConfig, views: Sequence[int] | Non
 
 # ----------------------------------------------------------------------------- flow and moving objects
 
+def _first_box(points_world: torch.Tensor, boxes: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """points N×3 and boxes K×7 in world, `rows` K (each box's row in the record) -> N int64: the row of the
+    first box holding each point (boxes do not overlap), -1 = none. In chunks of _VOXEL_CHUNK points."""
+    owner = torch.full((points_world.shape[0],), -1, dtype=torch.long)
+    if rows.numel() == 0:
+        return owner
+    for start in range(0, points_world.shape[0], _VOXEL_CHUNK):
+        inside = gboxes.points_in_boxes(points_world[None, start:start + _VOXEL_CHUNK], boxes[None])[0]  # n×K
+        first = inside.to(torch.int8).argmax(-1)  # n
+        owner[start:start + _VOXEL_CHUNK] = torch.where(inside.any(-1), rows[first], -1)
+    return owner
+
+
 def _box_membership(record: Record, t: int, grid: GridConfig, rows: torch.Tensor) -> torch.Tensor:
     """Which box row (from `rows`, K' indices) holds each voxel centre at step t: Z·Y·X int64, -1 = none."""
     world_T_ref = _f64(record, "world_T_ref")[t]  # 4×4
     centres_world = se3.apply(world_T_ref, voxel_centers_ref(grid, dtype=torch.float64))  # ZYX×3
-    owner = torch.full((centres_world.shape[0],), -1, dtype=torch.long)
-    if rows.numel() == 0:
-        return owner
-    boxes_t = _f64(record, "boxes")[t, rows]  # K'×7
-    for start in range(0, centres_world.shape[0], _VOXEL_CHUNK):
-        chunk = centres_world[start:start + _VOXEL_CHUNK]
-        inside = gboxes.points_in_boxes(chunk[None], boxes_t[None])[0]  # n×K'
-        first = inside.to(torch.int8).argmax(-1)  # n, first box that holds it (boxes do not overlap)
-        owner[start:start + _VOXEL_CHUNK] = torch.where(inside.any(-1), rows[first], -1)
-    return owner
+    return _first_box(centres_world, _f64(record, "boxes")[t, rows], rows)
 
 
 def _surface_membership(record: Record, t: int, grid: GridConfig, rows: torch.Tensor) -> torch.Tensor:
@@ -151,18 +155,11 @@ def _surface_membership(record: Record, t: int, grid: GridConfig, rows: torch.Te
     boxes = _f64(record, "boxes")[t, every].clone()  # K_t×7
     boxes[:, 3:6] += 2.0 * SURFACE_TOLERANCE_M
     world = se3.apply(_f64(record, "world_T_ref")[t], xyz_ref.double())  # P'×3
-    point_box = torch.full((flat.numel(),), -1, dtype=torch.long)  # a row of the record's boxes, -1 = none
-    for start in range(0, flat.numel(), _VOXEL_CHUNK):
-        inside = gboxes.points_in_boxes(world[None, start:start + _VOXEL_CHUNK], boxes[None])[0]  # n×K_t
-        first = inside.to(torch.int8).argmax(-1)
-        point_box[start:start + _VOXEL_CHUNK] = torch.where(inside.any(-1), every[first], -1)
+    point_box = _first_box(world, boxes, every)  # P': a row of the record's boxes, -1 = none
     # A voxel is one box's when the smallest and the largest box row of its points agree (and are not -1).
     lowest = torch.full((n_vox,), n_vox, dtype=torch.long).scatter_reduce(0, flat, point_box, "amin")
     highest = torch.full((n_vox,), -2, dtype=torch.long).scatter_reduce(0, flat, point_box, "amax")
-    one_box = (lowest == highest) & (lowest >= 0)
-    wanted = torch.zeros(int(box_valid.numel()), dtype=torch.bool)  # K: the rows asked for
-    wanted[rows] = True
-    one_box &= wanted[lowest.clamp(0, wanted.numel() - 1)]
+    one_box = (lowest == highest) & torch.isin(lowest, rows)  # ... and that box is one of `rows`
     owner[one_box] = lowest[one_box]
     return owner
 

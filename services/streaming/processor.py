@@ -23,6 +23,16 @@ from services.inference.wire import view_from_proto
 from services.streaming.bridge import MalformedFrame, Outputs
 
 
+def _parse(payload: bytes) -> types_pb2.Frame:
+    """The payload as an n3dmap.v1.Frame message (not yet validated); MalformedFrame if it does not parse."""
+    msg = types_pb2.Frame()
+    try:
+        msg.ParseFromString(payload)
+    except DecodeError as e:
+        raise MalformedFrame(f"payload is not an n3dmap.v1.Frame: {e}") from None
+    return msg
+
+
 class RuntimeProcessor(MovingStream):
     """Decode `Frame` payloads and run egomotion + moving objects on the runtime's bundle."""
 
@@ -38,13 +48,8 @@ class RuntimeProcessor(MovingStream):
                          level=level, level_ahead=level_ahead, ground_y=ground_y)
 
     def decode(self, payload: bytes) -> View:
-        msg = types_pb2.Frame()
         try:
-            msg.ParseFromString(payload)
-        except DecodeError as e:
-            raise MalformedFrame(f"payload is not an n3dmap.v1.Frame: {e}") from None
-        try:
-            return view_from_proto(msg, "frame")
+            return view_from_proto(_parse(payload), "frame")
         except InvalidInput as e:
             raise MalformedFrame(str(e)) from None
 
@@ -52,12 +57,10 @@ class RuntimeProcessor(MovingStream):
     def starts_scene(payload: bytes) -> bool:
         """The payload's Frame.scene_start, read without validating the frame (the bridge asks it of a
         frame it replaces unprocessed); False for a payload that does not parse."""
-        msg = types_pb2.Frame()
         try:
-            msg.ParseFromString(payload)
-        except DecodeError:
+            return bool(_parse(payload).scene_start)
+        except MalformedFrame:
             return False
-        return bool(msg.scene_start)
 
     def process(self, camera: str, state: CameraState, frame: View, ahead=None) -> Outputs:
         try:

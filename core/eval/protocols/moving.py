@@ -27,14 +27,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from core.data.ground_truth import points_in_ref
 from core.errors import DataError
 from core.eval.method_ap import MethodAP
 from core.eval.moving_protocol import camera_setting, gt_moving_boxes, moving_objects_2p5d_rig
 from core.eval.protocols.inputs import pair_inputs, record_batch
 from core.eval.protocols.moving_oracle import oracle_boxes
 from core.moving.amodal import SizePrior, estimate_size_prior
-from core.moving.ground import fit_ground_plane
 from core.pipeline.moving import MovingObjectsConfig, moving_objects
 
 NEEDS = ("mapper", "flow")
@@ -89,14 +87,6 @@ def method_configs(bundle, records, *, device, config: MovingObjectsConfig, size
     return configs
 
 
-def _ground(record, t: int, objects: MovingObjectsConfig):
-    """The frame's ground plane for the 2.5D baselines' amodal boxes, fitted as the oracle row fits it."""
-    if objects.ground_margin is None:
-        return None
-    xyz, valid = points_in_ref(record, t)
-    return fit_ground_plane(xyz[valid].double().numpy())
-
-
 def baseline_priors(records, grid, config: "MovingEvalConfig") -> dict:
     """{2.5D method: SizePrior or None}: as `method_configs` for the 3D methods — "auto" estimates a prior
     from the visible boxes of each flow source's stabilised variant over `records` (no labels), and both
@@ -149,13 +139,12 @@ def evaluate(bundle, records, config: MovingEvalConfig = MovingEvalConfig(), *, 
             true_flow, observed = oracle["flow"], oracle["observed"]
             found[ORACLE_3D] = _np(oracle["boxes"][0], oracle["scores"][0], oracle["valid"][0])
             if config.baselines:
-                ground = _ground(record, t, objects)
                 for name, (source, stabilise) in BASELINES.items():
                     found[name] = moving_objects_2p5d_rig(record, t, flow_source=source, stabilise=stabilise,
                                                           threshold_px=config.threshold_px,
                                                           min_pixels=config.min_pixels, dt=objects.dt,
                                                           nms_iou=objects.nms_iou, grid=grid,
-                                                          size_prior=priors_2p5d[name], ground=ground)
+                                                          size_prior=priors_2p5d[name], ground=oracle["ground"])
             for name, (boxes, scores) in found.items():
                 acc[cam][name].add_frame(boxes, scores, gt)
             pairs[cam] += 1

@@ -17,8 +17,8 @@ from core.pipeline.moving import MovingObjectsConfig, boxes_from_flow
 
 def oracle_boxes(record, t: int, grid, config: MovingObjectsConfig) -> dict:
     """The true stabilised flow and occupancy of pair (t, t+1) through the post-processing of `config`
-    (a batch of one): core.pipeline.moving.boxes_from_flow's dict plus `flow` 1×3×Z×Y×X and `observed`
-    1×1×Z×Y×X. The true flow moves the voxels that hold an object's content (core.data.ground_truth: its
+    (a batch of one): core.pipeline.moving.boxes_from_flow's dict plus `flow` 1×3×Z×Y×X, `observed`
+    1×1×Z×Y×X and `ground`, the frame's ground plane (4,) or None (the 2.5D baselines stand their boxes on it). The true flow moves the voxels that hold an object's content (core.data.ground_truth: its
     centre inside the object, or only the object's surface points in it), as a model's flow does, so its
     boxes are made as the model's are (`config.moving_voxels`, "surface" by default: unpadded). Measured on
     the small report's 64 test records (session 24), AP3D@0.5 static / moving camera: 1.000 / 1.000 this way;
@@ -34,4 +34,4 @@ def oracle_boxes(record, t: int, grid, config: MovingObjectsConfig) -> dict:
     observed = seen_by.any(dim=1, keepdim=True).float()                        # 1×1×Z×Y×X (gt_occupancy)
     out = boxes_from_flow(true_flow, observed, grid, config, ground=ground,
                           viewpoints=viewpoints, seen_by=seen_by)
-    return {**out, "flow": true_flow, "observed": observed}
+    return {**out, "flow": true_flow, "observed": observed, "ground": ground[0]}
