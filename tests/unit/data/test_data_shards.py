@@ -146,7 +146,7 @@ def test_overwrite_replaces_the_dataset(tmp_path, records):
 def test_interrupt_while_a_shard_is_being_opened_leaves_no_file(tmp_path, records, monkeypatch):
     """Ctrl-C after a shard's file is created but before its writer exists (CI hit this window once):
     the interrupt propagates and no file is left, neither the finished first shard nor the new one."""
-    import core.data.shards as shards
+    import core.data.shards.writer as shards
 
     opened = []
     real_open = tarfile.open
@@ -166,7 +166,7 @@ def test_interrupt_while_a_shard_is_being_opened_leaves_no_file(tmp_path, record
 def test_interrupt_while_finishing_leaves_no_temporary_file(tmp_path, records, monkeypatch):
     """Ctrl-C between the shards' renames and the manifest's: no `.partial` file stays, and no manifest
     (the directory holds no dataset)."""
-    import core.data.shards as shards
+    import core.data.shards.writer as shards
 
     real_replace = shards.os.replace
 
