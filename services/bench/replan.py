@@ -28,12 +28,13 @@ from services.bench.stages import StageRunner
 
 def _dry_run(config: BenchConfig, work: Path) -> StageRunner:
     """Every stage `config` runs, recorded (digests and inputs) without running or writing anything."""
-    from services.bench.paper import _data_stages, _seed_stages
+    from services.bench.paper import _data_stages
+    from services.bench.seed_stages import seed_stages
 
     stages = StageRunner(work, log=lambda _: None, dry=True)
     data = _data_stages(stages, config)
     for seed in config.seeds:
-        _seed_stages(stages, config, seed, data, [], [], "cpu")
+        seed_stages(stages, config, seed, data, [], [], "cpu")
     return stages
 
 
