@@ -60,7 +60,7 @@ from core.geometry.grid import GridConfig
 from core.geometry.resample import warp_rigid
 from core.geometry.warp_many import warp_rigid_many
 from core.models.cost_volume import displacements, mean_correlation_3d
-from core.models.egomotion_fine import FineAlignment, align_fine, fine_grid
+from core.models.egomotion_fine import FineAlignment, FineFrame, align_fine, fine_grid
 from core.models.egomotion_refine import FeatureMetricRefiner
 from core.models.egomotion_rotations import candidate_angles, candidate_rotations
 from core.models.encoder3d import Encoder3D
@@ -87,8 +87,9 @@ def se3_exp_update(delta: torch.Tensor) -> torch.Tensor:
     return se3.from_rt(se3.axis_angle_to_matrix(delta[:, :3]), delta[:, 3:])
 
 
-# The fine stage of new modules and of bundles saved before it (core.models.egomotion_fine has the numbers).
-DEFAULT_FINE_ALIGNMENT = {"factor": 2, "levels": ((0.7, 0.1, 3),)}
+# The fine stage of new modules and of bundles saved before the option (core.models.egomotion_fine has the
+# numbers): point-to-TSDF on a grid 4× finer than the map's. A bundle that saved its stage keeps it.
+DEFAULT_FINE_ALIGNMENT = {"kind": "tsdf", "factor": 4}
 
 
 class EgomotionNet(nn.Module):
@@ -142,9 +143,10 @@ class EgomotionNet(nn.Module):
             raise ValueError(f"EgomotionNet: input_occupancy must be one of {OCCUPANCY_KINDS}")
         self.input_occupancy = input_occupancy
         self.refiner = None if refine is None else FeatureMetricRefiner(feature_dim=feature_dim, **refine)
-        # The last stage at inference (core.models.egomotion_fine): geometric alignment of the points' splat on
-        # a finer grid, from the sub-voxel stage's estimate; only for a module that has that stage and reads
-        # splats (bundles saved before the option get the default). Callers pass its volumes to `refine_fine`.
+        # The last stage at inference (core.models.egomotion_fine): geometric alignment on a finer grid (frame
+        # 1's points against frame 0's TSDF, or the frames' splats), from the sub-voxel stage's estimate; only
+        # for a module that has that stage and reads splats (bundles saved before the option get the default).
+        # Callers pass each frame's FineFrame (core.models.egomotion_inputs.egomotion_fine_frame) to `refine_fine`.
         self.fine = (FineAlignment(**fine_alignment) if fine_alignment is not None and self.refiner is not None
                      and input_occupancy == "splat" else None)
 
@@ -163,15 +165,16 @@ class EgomotionNet(nn.Module):
         """The grid of the fine stage's volumes (None: the module has no fine stage)."""
         return None if self.fine is None else fine_grid(self.grid, self.fine.factor)
 
-    def refine_fine(self, ref0_T_ref1: torch.Tensor, reference_fine: torch.Tensor | None,
-                    query_fine: torch.Tensor | None) -> torch.Tensor:
-        """The fine stage on an estimate B×4×4 and the frames' fine volumes B×1×Z'×Y'×X' on `fine_grid`
-        (core.models.egomotion_inputs.egomotion_fine_volume): the estimate it ends at, B×4×4; the estimate
-        as it is in training mode, without a fine stage, or without the volumes."""
+    def refine_fine(self, ref0_T_ref1: torch.Tensor, reference_fine: FineFrame | None,
+                    query_fine: FineFrame | None) -> torch.Tensor:
+        """The fine stage on an estimate B×4×4 and the frames' FineFrames on `fine_grid`
+        (core.models.egomotion_inputs.egomotion_fine_frame; frame 0's, frame 1's): the estimate it ends at,
+        B×4×4; the estimate as it is in training mode, without a fine stage, or without the frames."""
         if self.fine is None or self.training or reference_fine is None or query_fine is None:
             return ref0_T_ref1
-        return align_fine(ref0_T_ref1, reference_fine.to(ref0_T_ref1.dtype), query_fine.to(ref0_T_ref1.dtype),
-                          self.fine_grid, self.fine)
+        as_frame = lambda f: f if isinstance(f, FineFrame) else FineFrame(f)  # noqa: E731 (a bare splat volume)
+        return align_fine(ref0_T_ref1, as_frame(reference_fine).to(ref0_T_ref1.dtype),
+                          as_frame(query_fine).to(ref0_T_ref1.dtype), self.fine_grid, self.fine)
 
     def scale_grid(self, scale: float) -> GridConfig:
         return self.grid if scale == 1.0 else self.grid.scaled(scale)

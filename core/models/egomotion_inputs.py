@@ -9,7 +9,7 @@ that move with the camera (measured: the optimum of dense alignment of summed sp
 0.057 m off the truth on the small preset's moving-camera test pairs, of the max 0.0012 rad / 0.026 m;
 tests/benchmarks/bench_egomotion_precision.py --floors).
 `egomotion_input_volume` builds the volume an egomotion module expects (its grid and occupancy kind);
-`egomotion_fine_volume` the one its fine stage aligns at inference (core.models.egomotion_fine).
+`egomotion_fine_frame` what its fine stage aligns at inference (core.models.egomotion_fine).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import torch
 
 from core.errors import check_shape
 from core.geometry.grid import GridConfig
-from core.models.egomotion_fine import fine_occupancy
+from core.models.egomotion_fine import FineFrame, fine_frame
 from core.models.input_volume import input_volume
 
 
@@ -46,11 +46,11 @@ def egomotion_input_volume(net, rgb: torch.Tensor, depth: torch.Tensor, pix_T_ca
                               occupancy=getattr(net, "input_occupancy", "binary"))
 
 
-def egomotion_fine_volume(net, depth: torch.Tensor, pix_T_cam: torch.Tensor,
-                          cam_T_ref: torch.Tensor) -> torch.Tensor | None:
-    """The volume of an egomotion module's fine stage (core.models.egomotion_fine.fine_occupancy on
-    `net.fine_grid`; depth B×V×H×W, pix_T_cam / cam_T_ref B×V×4×4) -> B×1×Z'×Y'×X', or None when the
-    module has no fine stage (or is training: the stage runs at inference only)."""
+def egomotion_fine_frame(net, depth: torch.Tensor, pix_T_cam: torch.Tensor,
+                         cam_T_ref: torch.Tensor) -> FineFrame | None:
+    """One frame's data for an egomotion module's fine stage (core.models.egomotion_fine.fine_frame with the
+    module's grid and stage; depth B×V×H×W, pix_T_cam / cam_T_ref B×V×4×4), or None when the module has no
+    fine stage (or is training: the stage runs at inference only)."""
     if net.fine_grid is None or net.training:
         return None
-    return fine_occupancy(depth, pix_T_cam, cam_T_ref, net.fine_grid)
+    return fine_frame(depth, pix_T_cam, cam_T_ref, net.grid, net.fine)

@@ -150,13 +150,14 @@ def gauss_newton_refine(reference: torch.Tensor, query: torch.Tensor, estimate: 
         A = H + damping * torch.diag_embed(diag) + 1e-6 * (diag.mean(1, keepdim=True)[..., None] + 1e-3) * eye
         delta = torch.linalg.solve(A, g.unsqueeze(-1)).squeeze(-1)  # B×6 (ω, t)
         if max_step is not None:
-            delta = torch.cat([_clamp_norm(delta[:, :3], max_step[0]), _clamp_norm(delta[:, 3:], max_step[1])], 1)
+            delta = torch.cat([clamp_norm(delta[:, :3], max_step[0]), clamp_norm(delta[:, 3:], max_step[1])], 1)
         E = se3.from_rt(se3.axis_angle_to_matrix(delta[:, :3]), delta[:, 3:]) @ E
         history.append(E)
     return E, history
 
 
-def _clamp_norm(v: torch.Tensor, limit: float) -> torch.Tensor:
+def clamp_norm(v: torch.Tensor, limit: float) -> torch.Tensor:
+    """v …×k scaled down so that its norm over the last axis is at most `limit` (unchanged when it is)."""
     n = v.norm(dim=-1, keepdim=True)
     return v * torch.clamp(limit / n.clamp_min(1e-12), max=1.0)
 

@@ -16,7 +16,8 @@ from dataclasses import dataclass, replace
 import torch
 
 from core.geometry.poses import rig_cam_T_ref
-from core.models.egomotion_inputs import egomotion_fine_volume, egomotion_input_volume, fused_input_volume
+from core.models.egomotion_fine import FineFrame
+from core.models.egomotion_inputs import egomotion_fine_frame, egomotion_input_volume, fused_input_volume
 from core.pipeline.moving_boxes import FrameEvidence, frame_evidence
 
 
@@ -26,8 +27,8 @@ class FrameEncoding:
 
     ego_volume: B×4×Z×Y×X egomotion input volume (None without an egomotion module or not made yet);
     ego_features: B×F'×Z×Y×X the egomotion module's encoding of it (EgomotionNet.encode), so each frame is
-    encoded once on a stream; ego_fine: B×1×Z'×Y'×X' the volume of the module's fine stage (None without
-    one: core.models.egomotion_fine); features: B×F×Z×Y×X mapper map (None when nothing in the pair step reads it:
+    encoded once on a stream; ego_fine: the frame's data for the module's fine stage (a FineFrame: its TSDF
+    and points, or its splat; None without one: core.models.egomotion_fine); features: B×F×Z×Y×X mapper map (None when nothing in the pair step reads it:
     see `needs_map`); occupancy: B×1×Z×Y×X probabilities (None without an occupancy head);
     flow_encoded: B×C×Z×Y×X the flow module's encoding of what it compares of this frame (Flow3D.encode of
     the map, or of the binary input volume when the flow module compares input volumes); flow_volume:
@@ -37,7 +38,7 @@ class FrameEncoding:
 
     ego_volume: torch.Tensor | None = None
     ego_features: torch.Tensor | None = None
-    ego_fine: torch.Tensor | None = None
+    ego_fine: FineFrame | None = None
     features: torch.Tensor | None = None
     flow_encoded: torch.Tensor | None = None
     flow_volume: torch.Tensor | None = None
@@ -124,7 +125,7 @@ def encode_previous(bundle, *, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam
         enc.ego_volume = egomotion_input_volume(bundle.modules["egomotion"], rgb, depth, pix_T_cam, cam_T_ref)
         watch.lap("ego_volume")
     if ego_volume and enc.ego_fine is None and "egomotion" in bundle.modules:
-        enc.ego_fine = egomotion_fine_volume(bundle.modules["egomotion"], depth, pix_T_cam, cam_T_ref)  # or None
+        enc.ego_fine = egomotion_fine_frame(bundle.modules["egomotion"], depth, pix_T_cam, cam_T_ref)  # or None
         watch.lap("ego_volume")
     if ego_volume and enc.ego_features is None and enc.ego_volume is not None:
         enc.ego_features = bundle.modules["egomotion"].encode(enc.ego_volume)  # B×F'×Z×Y×X

@@ -19,7 +19,7 @@ import torch
 
 from core.geometry import se3
 from core.geometry.poses import rig_cam_T_ref
-from core.models.egomotion_inputs import egomotion_fine_volume, egomotion_input_volume, fused_input_volume
+from core.models.egomotion_inputs import egomotion_fine_frame, egomotion_input_volume, fused_input_volume
 from core.pipeline.egomotion import egomotion_from_volumes
 from core.pipeline.encoding import FrameEncoding, Stopwatch, binary_volume, encode_previous
 from core.pipeline.flow_gate import GATE_FILL, gate_flow
@@ -86,7 +86,7 @@ def flow_step(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_T_cam0: t
             current.ego_volume = egomotion_input_volume(net, rgb1, depth1, pix_T_cam1, cam1_T_ref1)  # B×4×Z×Y×X
             watch.lap("ego_volume")
         if current.ego_fine is None:
-            current.ego_fine = egomotion_fine_volume(net, depth1, pix_T_cam1, cam1_T_ref1)  # B×1×Z'×Y'×X' or None
+            current.ego_fine = egomotion_fine_frame(net, depth1, pix_T_cam1, cam1_T_ref1)  # FineFrame or None
             watch.lap("ego_volume")
         if current.ego_features is None:
             current.ego_features = net.encode(current.ego_volume)  # B×F'×Z×Y×X, the next pair's reference

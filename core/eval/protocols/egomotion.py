@@ -26,6 +26,8 @@ from core.pipeline.egomotion import estimate_egomotion
 from core.tasks.egomotion import random_perturbation
 
 NEEDS = ("egomotion",)
+# The module's estimate where its learned stages end, before its weightless fine stage (a module with one).
+LEARNED_ROW = "model, learned stages only"
 
 
 def icp_gates(voxel_size: float) -> tuple[float, float, float]:
@@ -58,12 +60,12 @@ def _cloud(record: dict, t: int, ref_T_refp: np.ndarray, grid) -> np.ndarray:
 
 
 def evaluate(bundle, records, config: EgomotionEvalConfig = EgomotionEvalConfig(), *, device) -> dict:
-    """{"methods": {"model"|"identity"|"icp": per-pair errors (core.eval.egomotion_metrics)},
+    """{"methods": {"model"|"identity"|"icp"|LEARNED_ROW: per-pair errors (core.eval.egomotion_metrics)},
     "gt_motion": {"rot_deg": P, "trans_m": P}} over the P pairs."""
     grid = bundle.preset.grid
     gen = torch.Generator().manual_seed(config.seed)
     perturb = config.perturb_deg > 0 or config.perturb_m > 0
-    est, gts, icps = [], [], []
+    est, learned, gts, icps = [], [], [], []
     for record in records:
         batch = record_batch(record, device)
         T = batch["rgb"].shape[1]
@@ -76,6 +78,7 @@ def evaluate(bundle, records, config: EgomotionEvalConfig = EgomotionEvalConfig(
             out = estimate_egomotion(bundle, **inputs)
             gt = relative(inputs["world_T_ref0"].double(), inputs["world_T_ref1"].double())  # 1×4×4 ref0_T_ref1'
             est.append(out["ref0_T_ref1"].double().cpu())
+            learned.append(out["ref0_T_ref1_learned"].double().cpu())
             gts.append(gt.cpu())
             if config.icp:
                 source = _cloud(record, t1, P[0].double().numpy(), grid)
@@ -85,6 +88,8 @@ def evaluate(bundle, records, config: EgomotionEvalConfig = EgomotionEvalConfig(
     est, gts = torch.cat(est), torch.cat(gts)
     methods = {"model": relative_pose_errors(est, gts),
                "identity": relative_pose_errors(torch.eye(4, dtype=torch.float64).expand_as(gts), gts)}
+    if bundle.modules["egomotion"].fine is not None:  # what the weightless last stage adds, shown apart
+        methods[LEARNED_ROW] = relative_pose_errors(torch.cat(learned), gts)
     if config.icp:
         methods["icp"] = relative_pose_errors(torch.cat(icps), gts)
     gt_motion = {"rot_deg": se3.rotation_angle(gts[:, :3, :3]) * 180 / math.pi, "trans_m": gts[:, :3, 3].norm(dim=1)}
