@@ -25,6 +25,7 @@ import torch
 
 from core.device import resolve_device
 from core.errors import BundleError
+from core.models.egomotion_fine import FineAlignment
 from core.pipeline.moving_boxes import DEFAULT_DT, MovingObjectsConfig
 from services.inference.batching import BatchConfig, BatchStats, MicroBatcher
 from services.inference.errors import ModuleUnavailable, NotReady, RequestTimeout
@@ -50,13 +51,15 @@ class RuntimeConfig:
     # The moving-object post-processing of the moving_objects route and the gRPC stream (`serve --size-prior`,
     # `--min-object-speed`); its `dt` is unused (each pair's interval comes from its frames or frame_dt).
     moving_objects: MovingObjectsConfig = field(default_factory=MovingObjectsConfig)
-    # False: the bundle's egomotion module skips its last, finer alignment stage (core/models/egomotion_fine.py;
-    # `--no-egomotion-fine`): faster, less precise.
-    egomotion_fine: bool = True
+    # Which last, weightless alignment stage the bundle's egomotion module runs (core/models/egomotion_fine.py;
+    # `--egomotion-fine`): "module" its own, "splat" the splat stage on a 2× finer grid (fast), "off" none.
+    egomotion_fine: str = "module"
 
     def __post_init__(self) -> None:
         if not self.frame_dt > 0:
             raise BundleError(f"frame_dt must be positive seconds, got {self.frame_dt}")
+        if self.egomotion_fine not in ("module", "splat", "off"):
+            raise BundleError(f"egomotion_fine must be module, splat or off, got {self.egomotion_fine!r}")
 
 
 @dataclass(frozen=True)
@@ -86,14 +89,18 @@ def _missing(route: Route, bundle, item: Any | None = None) -> list[str]:
     return [m for m in route.needs(item) if m not in bundle.modules]
 
 
-def _load(path: str, device: torch.device, *, egomotion_fine: bool = True) -> _Loaded:
+def _load(path: str, device: torch.device, *, egomotion_fine: str = "module") -> _Loaded:
     from core.bundle import load_bundle  # safetensors / weights_only: no code is unpickled
 
     bundle = load_bundle(path, device)
     for module in bundle.modules.values():
         module.eval()
-    if not egomotion_fine and "egomotion" in bundle.modules:
-        bundle.modules["egomotion"].fine = None  # no fine stage: every pipeline path then skips it
+    ego = bundle.modules.get("egomotion")
+    if ego is not None and getattr(ego, "fine", None) is not None:
+        if egomotion_fine == "off":
+            ego.fine = None  # no fine stage: every pipeline path then skips it
+        elif egomotion_fine == "splat":
+            ego.fine = FineAlignment(kind="splat", factor=2)
     return _Loaded(bundle=bundle, version=bundle_version(bundle), path=str(path), loaded_at=time.time())
 
 

@@ -150,7 +150,7 @@ def run_preset(preset: str, bundle: Path, args, work: Path) -> dict:
         ["bridge", "--bundle", str(bundle), "--listen", endpoint, "--bridge-id", f"bench-{preset}",
          "--threads", str(args.threads), "--device", "cpu", "--status-every", "0",
          *([] if args.lookahead else ["--no-lookahead"]),
-         *([] if args.egomotion_fine else ["--no-egomotion-fine"]),
+         "--egomotion-fine", args.egomotion_fine,
          *([] if args.size_prior is None else ["--size-prior", *map(str, args.size_prior)]),
          *(["--level"] if args.level else []),
          *(["--level-ahead", str(args.level_ahead)] if args.level_ahead else []),
@@ -217,8 +217,10 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, default=1, help="the bridge's torch threads")
     parser.add_argument("--no-lookahead", dest="lookahead", action="store_false",
                         help="run the bridge without its look-ahead thread (for comparison)")
-    parser.add_argument("--no-egomotion-fine", dest="egomotion_fine", action="store_false",
-                        help="the bridge's --no-egomotion-fine (skip the egomotion module's finer last stage)")
+    parser.add_argument("--egomotion-fine", choices=("module", "splat", "off"), default="splat",
+                        help="the bridge's --egomotion-fine (its default: splat)")
+    parser.add_argument("--no-egomotion-fine", dest="egomotion_fine", action="store_const", const="off",
+                        help="the same as --egomotion-fine off")
     parser.add_argument("--drain-s", type=float, default=5.0, help="wait after the last frame before stopping")
     parser.add_argument("--level", action="store_true", help="the bridge's --level: boxes in the levelled camera")
     parser.add_argument("--level-ahead", type=float, default=0.0, help="the bridge's --level-ahead (metres)")

@@ -86,10 +86,10 @@ def evaluate(bundle, records, config: EgomotionEvalConfig = EgomotionEvalConfig(
                 res = icp_coarse_to_fine(source, target, iterations=30, max_distances=icp_gates(grid.voxel_size))
                 icps.append(torch.from_numpy(res.target_T_source)[None])
     est, gts = torch.cat(est), torch.cat(gts)
-    methods = {"model": relative_pose_errors(est, gts),
-               "identity": relative_pose_errors(torch.eye(4, dtype=torch.float64).expand_as(gts), gts)}
+    methods = {"model": relative_pose_errors(est, gts)}
     if bundle.modules["egomotion"].fine is not None:  # what the weightless last stage adds, shown apart
         methods[LEARNED_ROW] = relative_pose_errors(torch.cat(learned), gts)
+    methods["identity"] = relative_pose_errors(torch.eye(4, dtype=torch.float64).expand_as(gts), gts)
     if config.icp:
         methods["icp"] = relative_pose_errors(torch.cat(icps), gts)
     gt_motion = {"rot_deg": se3.rotation_angle(gts[:, :3, :3]) * 180 / math.pi, "trans_m": gts[:, :3, 3].norm(dim=1)}
