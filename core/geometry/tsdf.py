@@ -9,8 +9,9 @@ front of the surface, clipped to [−trunc, trunc] and divided by trunc; behind 
 the view says nothing (occluded). Views are averaged where they say something; `known` marks voxels with at
 least one view's value. Why bilinear depth: the zero crossing of a plane seen at a grazing angle then lies on
 the plane; a nearest-pixel lookup puts a staircase there, whose alignment optimum lies off the true pose
-(measured on the small report's moving-camera test pairs: point-to-TSDF alignment started from the truth ends
-0.00066 rad / 0.011 m off with nearest pixels at 0.125 m voxels, 0.00013 / 0.0027 with bilinear depth). Where
+(measured on 8 of the small report's moving-camera test pairs, a scratch version of the alignment started
+from the truth: 0.00066 rad / 0.011 m off with nearest pixels at 0.125 m voxels, 0.00013 / 0.0027 with
+bilinear depth; docs/findings.md, "Egomotion"). Where
 the four pixels around the projection disagree by more than `max_spread` of their largest depth (a depth
 edge) the view says nothing, instead of interpolating across the edge.
 

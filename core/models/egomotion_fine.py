@@ -9,11 +9,12 @@ aligns the frames' geometry. Two kinds:
 - "tsdf" (the default since session 25): Gauss-Newton of frame 1's depth points against frame 0's projective
   TSDF on the fine grid (core.geometry.tsdf; KinectFusion's map, tracked as Bylow et al. 2013 track a
   frame against it): the residual of a point is the TSDF where the estimate puts it, its gradient by central
-  differences of the trilinear TSDF, Huber weights, `iterations` steps. The points are frame 1's depth
-  points reduced to one per cube of `point_cell` map voxels (as the ICP baseline's cloud:
-  core.eval.protocols.egomotion). Measured on the small report's 32 moving-camera test pairs (out of
-  docs/findings.md, "Egomotion"): started from the truth, a TSDF on 0.125 m voxels (factor 4) ends where
-  point-to-plane ICP ends; on 0.25 m voxels (factor 2) its mean translation error is twice ICP's.
+  differences of the trilinear TSDF (one-sided next to an unknown voxel), Huber weights, `iterations` steps.
+  The points are frame 1's depth points reduced to one per cube of `point_cell` map voxels (as the ICP
+  baseline's cloud: core.eval.protocols.egomotion). Measured on the small report's 32 moving-camera test
+  pairs (docs/findings.md, "Egomotion"): started 0.6° / 0.25 m off the truth, a TSDF on 0.125 m voxels
+  (factor 4) ends where point-to-plane ICP ends (0.99 × / 0.95 × its mean errors); coarser grids do not.
+  A saved stage without a `kind` is a splat stage; a module saved before it had any fine stage gets this one.
 - "splat" (every bundle whose saved stage has no `kind`): Gauss-Newton of the max over the views of each
   view's surface splat (core.geometry.splat.surface_splat, clamped to 1) at `factor` times the resolution,
   blur σ and Cauchy scale per level. Its optimum lies where the splats put it, not at the truth: started at
@@ -84,15 +85,16 @@ class FineAlignment:
 @dataclass(frozen=True)
 class FineFrame:
     """One frame's data for the fine stage, in its own ref_t. volume: B×C×Z'×Y'×X' on the fine grid (splat:
-    C 1, the occupancy; tsdf: C 2, the TSDF and `known`); tsdf also points B×M×3 and points_valid B×M."""
+    C 1, the occupancy; tsdf: C 2, the TSDF and `known`; None when only the frame's points were asked for);
+    tsdf also points B×M×3 and points_valid B×M (None when only the TSDF was asked for)."""
 
-    volume: torch.Tensor
+    volume: torch.Tensor | None
     points: torch.Tensor | None = None
     points_valid: torch.Tensor | None = None
 
     def to(self, dtype: torch.dtype) -> "FineFrame":
-        return FineFrame(self.volume.to(dtype), None if self.points is None else self.points.to(dtype),
-                         self.points_valid)
+        return FineFrame(None if self.volume is None else self.volume.to(dtype),
+                         None if self.points is None else self.points.to(dtype), self.points_valid)
 
 
 def fine_grid(grid: GridConfig, factor: int) -> GridConfig:
@@ -114,14 +116,18 @@ def fine_occupancy(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torc
 
 
 def fine_frame(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor, map_grid: GridConfig,
-               config: FineAlignment) -> FineFrame:
+               config: FineAlignment, *, reference: bool = True, query: bool = True) -> FineFrame:
     """One frame's FineFrame for `config` (depth B×V×H×W, pix_T_cam / cam_T_ref B×V×4×4, the module's map
-    grid): its splat, or its TSDF and its points reduced to one per cube of `point_cell` map voxels."""
+    grid): its splat, or its TSDF (`reference`: the frame is a pair's frame 0) and its points reduced to one
+    per cube of `point_cell` map voxels (`query`: frame 1). A stream needs both (each frame is frame 1 of one
+    pair and frame 0 of the next); one pair needs one of each, and the TSDF is most of the cost."""
     grid = fine_grid(map_grid, config.factor)
     if config.kind == "splat":
         return FineFrame(fine_occupancy(depth, pix_T_cam, cam_T_ref, grid))
-    tsdf = projective_tsdf(depth, pix_T_cam, cam_T_ref, grid, truncation_m=config.truncation * grid.voxel_size,
-                           band_voxels=math.ceil(config.truncation) + 1)  # B×2×Z'×Y'×X'
+    tsdf = (projective_tsdf(depth, pix_T_cam, cam_T_ref, grid, truncation_m=config.truncation * grid.voxel_size,
+                            band_voxels=math.ceil(config.truncation) + 1) if reference else None)  # B×2×Z'×Y'×X'
+    if not query:
+        return FineFrame(tsdf)
     B, V, H, W = depth.shape
     xyz_cam, valid = depth_to_points(depth.reshape(B * V, H, W), pix_T_cam.reshape(B * V, 4, 4))  # BV×HW×3
     xyz_ref = se3.apply(se3.invert(cam_T_ref.reshape(B * V, 4, 4)), xyz_cam)  # BV×HW×3
@@ -137,6 +143,9 @@ def align_fine(estimate: torch.Tensor, reference: FineFrame | torch.Tensor, quer
     reference = reference if isinstance(reference, FineFrame) else FineFrame(reference)
     query = query if isinstance(query, FineFrame) else FineFrame(query)
     if config.kind == "tsdf":
+        if reference.volume is None or query.points is None:
+            raise ValueError("align_fine: a TSDF stage needs frame 0's TSDF (fine_frame(reference=True)) and "
+                             "frame 1's points (fine_frame(query=True)); a bare volume is a splat stage's")
         return align_points_to_tsdf(estimate, reference.volume, query.points, query.points_valid, grid, config)
     check_shape("reference", reference.volume, (estimate.shape[0], 1, *grid.shape_zyx))
     check_shape("query", query.volume, tuple(reference.volume.shape))

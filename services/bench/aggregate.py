@@ -110,7 +110,9 @@ def egomotion_table(per_seed: dict) -> dict:
     methods = set()
     for r in per_seed.values():
         methods |= set(get_path(r, "egomotion", "methods") or {})
-    order = [m for m in ("model", "icp", "identity") if m in methods] + sorted(methods - {"model", "icp", "identity"})
+    # the model's own rows ("model", then e.g. "model, learned stages only"), then the baselines
+    first = ["model", *sorted(m for m in methods if m.startswith("model,")), "icp", "identity"]
+    order = [m for m in first if m in methods] + sorted(methods - set(first))
     return {m: {"rot_rad": over_seeds(per_seed, "egomotion", "methods", m, "rot_err_rad_mean"),
                 "trans_m": over_seeds(per_seed, "egomotion", "methods", m, "trans_err_m_mean"),
                 "pairs": over_seeds(per_seed, "egomotion", "methods", m, "pairs")} for m in order}

@@ -41,7 +41,7 @@ def register(subparsers) -> None:
                              "spin against each other and run ~10× slower)")
     bridge.add_argument("--min-score", type=float, default=0.0, help="drop boxes scored below this")
     add_moving_object_arguments(bridge)
-    add_egomotion_arguments(bridge, default="splat")  # a 10 Hz stream cannot pay a TSDF stage (egomotion_options)
+    add_egomotion_arguments(bridge)  # the splat stage by default: a 10 Hz stream cannot pay a TSDF stage
     bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
     bridge.add_argument("--level", action="store_true",
                         help="map (and box) each frame in its camera levelled to gravity (frame \"level\": the camera's "

@@ -37,7 +37,10 @@ def server(tmp_path_factory):
     bundle = make_bundle(tmp / "bundle")
     # --frame-dt STEP as the frames' clock below: the untrained bundle's flow is slow, and 0.2 s steps left
     # it under the speed thresholds (no boxes to compare between the transports).
-    with ServerProcess(bundle, "--max-wait-ms", "20", "--frame-dt", str(STEP), log_path=tmp / "server.log") as s:
+    # --egomotion-fine module: the routes run the bundle's egomotion module as core.pipeline does (the
+    # default, splat, swaps its last stage; the moving-object options test below runs the default)
+    with ServerProcess(bundle, "--max-wait-ms", "20", "--frame-dt", str(STEP), "--egomotion-fine", "module",
+                       log_path=tmp / "server.log") as s:
         s.bundle = bundle
         yield s
 
@@ -575,7 +578,7 @@ def test_schemathesis_finds_no_server_errors(server, tmp_path):
     assert "passed" in proc.stdout
 
 
-def test_serve_moving_object_options_reach_every_moving_route(tmp_path, core_bundle, server):
+def test_serve_moving_object_options_reach_every_moving_route(tmp_path, server):
     """`serve --size-prior L W H --min-object-speed M`: the REST route, the unary and the streaming gRPC call
     answer what core.pipeline answers with that post-processing (amodal boxes of that size, that object
     threshold), not the defaults."""
@@ -586,12 +589,16 @@ def test_serve_moving_object_options_reach_every_moving_route(tmp_path, core_bun
     from core.pipeline.moving_boxes import MovingObjectsConfig
     from services.inference.client import GrpcClient, RestClient
 
+    from services.inference.runtime import _load
+
     config = MovingObjectsConfig(size_prior=SizePrior.from_size(4.5, 2.0, 1.5), min_object_speed=0.5)
     f0, f1 = movers(2)
+    # the bundle as a server with the default --egomotion-fine (splat) loads it
+    served = _load(str(server.bundle), torch.device("cpu"), egomotion_fine="splat").bundle
     with torch.no_grad():
-        want = core_boxes(moving_objects(core_bundle, **core_inputs(f0, "0"), **core_inputs(f1, "1"),
+        want = core_boxes(moving_objects(served, **core_inputs(f0, "0"), **core_inputs(f1, "1"),
                                          dt=f1.timestamp - f0.timestamp, config=config), -1.0)
-        default = core_boxes(moving_objects(core_bundle, **core_inputs(f0, "0"), **core_inputs(f1, "1"),
+        default = core_boxes(moving_objects(served, **core_inputs(f0, "0"), **core_inputs(f1, "1"),
                                             dt=f1.timestamp - f0.timestamp), -1.0)
     assert len(want["boxes"]) > 0  # something to compare, and the options change the answer
     assert want["boxes"].shape != default["boxes"].shape or not np.allclose(want["boxes"], default["boxes"])

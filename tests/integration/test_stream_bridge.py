@@ -191,9 +191,9 @@ def test_status_and_liveliness_answer(stack):
 
 
 def test_detections_arrive_and_equal_the_pipeline(stack):
-    from core.bundle import load_bundle
     from core.pipeline import moving_objects
     from core.pipeline.moving_boxes import MovingObjectsConfig
+    from services.inference.runtime import _load
     from services.inference.validation import stack_views
     from services.inference.wire import view_from_proto
     from services.inference.routes import pair_tensors
@@ -239,9 +239,9 @@ def test_detections_arrive_and_equal_the_pipeline(stack):
     frames = synthetic_frames(preset_name="tiny", seed=MOVERS_SEED, frames_per_episode=50)
     views = [stack_views([view_from_proto(types_pb2.Frame.FromString(
         encode_frame(next(frames), camera_id="movers", sequence=i, timestamp=0.0)), "frame")], "v") for i in range(sent)]
-    bundle = load_bundle(stack["bundle"], "cpu")
-    for m in bundle.modules.values():
-        m.eval()
+    # as the bridge loads it: its default --egomotion-fine splat swaps the egomotion module's last stage
+    bundle = _load(str(stack["bundle"]), torch.device("cpu"), egomotion_fine="splat").bundle
+    assert bundle.modules["egomotion"].fine.kind == "splat"
     assert lines[0]["boxes"] == []  # a camera's first frame has nothing to compare with
     # the camera's first episode, as synthetic_frames renders it: ground truth of every pair
     record = generate_record(get_preset("tiny"), seed=MOVERS_SEED, num_views=1, num_frames=50)

@@ -164,3 +164,31 @@ def test_the_module_runs_its_fine_stage_in_eval_mode_only_and_keeps_it_in_its_co
     assert _net(refine=None).fine is None and _net(input_occupancy="binary").fine is None
     off = _net(fine_alignment=None)
     assert off.fine is None and off.config()["fine_alignment"] is None and off.fine_grid is None
+
+
+def test_one_step_recovers_a_shift_along_a_walls_normal_exactly():
+    """Against a wall's TSDF, which is linear along its normal inside the band, one Gauss-Newton step from an
+    estimate 5 cm off along the normal lands on the truth: the Jacobian's translation part and the step's sign."""
+    depth0, pix = _room_depth(torch.eye(4, dtype=D))
+    flat = torch.full_like(depth0, 3.3)  # a fronto-parallel wall filling the image
+    config = FineAlignment(**{**DEFAULT_FINE_ALIGNMENT, "iterations": 1, "robust": 1.0, "damping": 0.0})
+    cam = torch.eye(4, dtype=D)[None, None]
+    f0 = fine_frame(flat, pix, cam, ROOM, config, query=False)
+    f1 = fine_frame(flat, pix, cam, ROOM, config, reference=False)
+    assert f0.points is None and f1.volume is None and bool(f1.points_valid.any())
+    start = _pose([0.0, 0.0, 0.0], [0.0, 0.0, 0.05])
+    E = align_fine(start, f0, f1, fine_grid(ROOM, config.factor), config)
+    assert abs(float(E[0, 2, 3])) < 1e-6 and torch.allclose(E[0, :3, :3], torch.eye(3, dtype=D), atol=1e-9)
+
+
+def test_a_tsdf_stage_needs_frame_0s_tsdf_and_frame_1s_points():
+    depth0, pix = _room_depth(torch.eye(4, dtype=D))
+    config = FineAlignment(**DEFAULT_FINE_ALIGNMENT)
+    cam = torch.eye(4, dtype=D)[None, None]
+    points_only = fine_frame(depth0, pix, cam, ROOM, config, reference=False)
+    grid = fine_grid(ROOM, config.factor)
+    with pytest.raises(ValueError, match="TSDF stage needs"):
+        align_fine(torch.eye(4, dtype=D)[None], points_only, points_only, grid, config)
+    with pytest.raises(ValueError, match="TSDF stage needs"):
+        align_fine(torch.eye(4, dtype=D)[None], torch.zeros(1, 1, *grid.shape_zyx, dtype=D),
+                   torch.zeros(1, 1, *grid.shape_zyx, dtype=D), grid, config)

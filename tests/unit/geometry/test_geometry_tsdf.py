@@ -127,3 +127,9 @@ def test_cell_means_are_the_icp_baselines_downsampling(cell):
     got = points[0][points_valid[0]].numpy()
     assert len(got) == len(expected) > 1
     np.testing.assert_allclose(got[np.lexsort(got.T)], expected[np.lexsort(expected.T)], atol=1e-9)
+
+
+def test_cell_means_of_an_empty_cloud_are_one_invalid_row():
+    points, points_valid = cell_mean_points(torch.zeros(2, 5, 3, dtype=D), torch.zeros(2, 5, dtype=torch.bool),
+                                            GRID, 0.5)
+    assert points.shape == (2, 1, 3) and not bool(points_valid.any())

@@ -35,9 +35,12 @@ def test_a_runtime_loads_the_stage_it_is_told_to(bundle_dir):
     assert off.refine_fine(E, vol, vol) is E
     with pytest.raises(BundleError, match="egomotion_fine"):
         RuntimeConfig(bundle_dir=str(bundle_dir), egomotion_fine="tsdf")
+    # the option was a boolean until session 25
+    assert RuntimeConfig(bundle_dir="b", egomotion_fine=True).egomotion_fine == "module"
+    assert RuntimeConfig(bundle_dir="b", egomotion_fine=False).egomotion_fine == "off"
 
 
-@pytest.mark.parametrize("argv, default", [(["serve", "--bundle", "B"], "module"),
+@pytest.mark.parametrize("argv, default", [(["serve", "--bundle", "B"], "splat"),
                                            (["stream", "bridge", "--bundle", "B"], "splat")])
 def test_the_option_parses_for_serve_and_the_bridge(argv, default):
     parser = build_parser(argv)
