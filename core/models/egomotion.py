@@ -173,8 +173,7 @@ class EgomotionNet(nn.Module):
         if self.fine is None or self.training or reference_fine is None or query_fine is None:
             return ref0_T_ref1
         as_frame = lambda f: f if isinstance(f, FineFrame) else FineFrame(f)  # noqa: E731 (a bare splat volume)
-        return align_fine(ref0_T_ref1, as_frame(reference_fine).to(ref0_T_ref1.dtype),
-                          as_frame(query_fine).to(ref0_T_ref1.dtype), self.fine_grid, self.fine)
+        return align_fine(ref0_T_ref1, as_frame(reference_fine), as_frame(query_fine), self.fine_grid, self.fine)
 
     def scale_grid(self, scale: float) -> GridConfig:
         return self.grid if scale == 1.0 else self.grid.scaled(scale)

@@ -82,19 +82,39 @@ class FineAlignment:
                 "iterations": self.iterations, "robust": self.robust, "point_cell": self.point_cell}
 
 
-@dataclass(frozen=True)
 class FineFrame:
     """One frame's data for the fine stage, in its own ref_t. volume: B×C×Z'×Y'×X' on the fine grid (splat:
-    C 1, the occupancy; tsdf: C 2, the TSDF and `known`; None when only the frame's points were asked for);
-    tsdf also points B×M×3 and points_valid B×M (None when only the TSDF was asked for)."""
+    C 1, the occupancy; tsdf: C 2, the TSDF and `known`); tsdf also points B×M×3 and points_valid B×M.
 
-    volume: torch.Tensor | None
-    points: torch.Tensor | None = None
-    points_valid: torch.Tensor | None = None
+    `volume` and `points` may be given as zero-argument callables (`points`' returning (points, points_valid)):
+    each part is then built on first use and kept. Why: a stream's frame is frame 1 of one pair, which reads
+    its points, and frame 0 of the next, which reads its TSDF; a single pair never builds frame 1's TSDF,
+    most of the stage's cost."""
 
-    def to(self, dtype: torch.dtype) -> "FineFrame":
-        return FineFrame(None if self.volume is None else self.volume.to(dtype),
-                         None if self.points is None else self.points.to(dtype), self.points_valid)
+    __slots__ = ("_volume", "_points")
+
+    def __init__(self, volume, points=None, points_valid: torch.Tensor | None = None) -> None:
+        self._volume = volume
+        self._points = points if points is None or callable(points) else (points, points_valid)
+
+    @property
+    def volume(self) -> torch.Tensor | None:
+        if callable(self._volume):
+            self._volume = self._volume()
+        return self._volume
+
+    def _point_parts(self) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        if callable(self._points):
+            self._points = self._points()
+        return (None, None) if self._points is None else self._points
+
+    @property
+    def points(self) -> torch.Tensor | None:
+        return self._point_parts()[0]
+
+    @property
+    def points_valid(self) -> torch.Tensor | None:
+        return self._point_parts()[1]
 
 
 def fine_grid(grid: GridConfig, factor: int) -> GridConfig:
@@ -116,24 +136,25 @@ def fine_occupancy(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torc
 
 
 def fine_frame(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor, map_grid: GridConfig,
-               config: FineAlignment, *, reference: bool = True, query: bool = True) -> FineFrame:
+               config: FineAlignment) -> FineFrame:
     """One frame's FineFrame for `config` (depth B×V×H×W, pix_T_cam / cam_T_ref B×V×4×4, the module's map
-    grid): its splat, or its TSDF (`reference`: the frame is a pair's frame 0) and its points reduced to one
-    per cube of `point_cell` map voxels (`query`: frame 1). A stream needs both (each frame is frame 1 of one
-    pair and frame 0 of the next); one pair needs one of each, and the TSDF is most of the cost."""
+    grid): its splat, or its TSDF (read when the frame is a pair's frame 0) and its points reduced to one per
+    cube of `point_cell` map voxels (read as frame 1), each built on first use (FineFrame)."""
     grid = fine_grid(map_grid, config.factor)
     if config.kind == "splat":
         return FineFrame(fine_occupancy(depth, pix_T_cam, cam_T_ref, grid))
-    tsdf = (projective_tsdf(depth, pix_T_cam, cam_T_ref, grid, truncation_m=config.truncation * grid.voxel_size,
-                            band_voxels=math.ceil(config.truncation) + 1) if reference else None)  # B×2×Z'×Y'×X'
-    if not query:
-        return FineFrame(tsdf)
-    B, V, H, W = depth.shape
-    xyz_cam, valid = depth_to_points(depth.reshape(B * V, H, W), pix_T_cam.reshape(B * V, 4, 4))  # BV×HW×3
-    xyz_ref = se3.apply(se3.invert(cam_T_ref.reshape(B * V, 4, 4)), xyz_cam)  # BV×HW×3
-    points, points_valid = cell_mean_points(xyz_ref.reshape(B, V * H * W, 3), valid.reshape(B, V * H * W),
-                                            map_grid, config.point_cell * map_grid.voxel_size)  # B×M×3, B×M
-    return FineFrame(tsdf, points, points_valid)
+
+    def tsdf() -> torch.Tensor:  # B×2×Z'×Y'×X'
+        return projective_tsdf(depth, pix_T_cam, cam_T_ref, grid, truncation_m=config.truncation * grid.voxel_size,
+                               band_voxels=math.ceil(config.truncation) + 1)
+
+    def points() -> tuple[torch.Tensor, torch.Tensor]:  # B×M×3, B×M
+        B, V, H, W = depth.shape
+        xyz_cam, valid = depth_to_points(depth.reshape(B * V, H, W), pix_T_cam.reshape(B * V, 4, 4))  # BV×HW×3
+        xyz_ref = se3.apply(se3.invert(cam_T_ref.reshape(B * V, 4, 4)), xyz_cam)  # BV×HW×3
+        return cell_mean_points(xyz_ref.reshape(B, V * H * W, 3), valid.reshape(B, V * H * W), map_grid,
+                                config.point_cell * map_grid.voxel_size)
+    return FineFrame(tsdf, points)
 
 
 def align_fine(estimate: torch.Tensor, reference: FineFrame | torch.Tensor, query: FineFrame | torch.Tensor,
@@ -144,14 +165,15 @@ def align_fine(estimate: torch.Tensor, reference: FineFrame | torch.Tensor, quer
     query = query if isinstance(query, FineFrame) else FineFrame(query)
     if config.kind == "tsdf":
         if reference.volume is None or query.points is None:
-            raise ValueError("align_fine: a TSDF stage needs frame 0's TSDF (fine_frame(reference=True)) and "
-                             "frame 1's points (fine_frame(query=True)); a bare volume is a splat stage's")
+            raise ValueError("align_fine: a TSDF stage needs frame 0's TSDF and frame 1's points (fine_frame); "
+                             "a bare volume is a splat stage's")
         return align_points_to_tsdf(estimate, reference.volume, query.points, query.points_valid, grid, config)
-    check_shape("reference", reference.volume, (estimate.shape[0], 1, *grid.shape_zyx))
-    check_shape("query", query.volume, tuple(reference.volume.shape))
+    ref_volume, query_volume = reference.volume.to(estimate.dtype), query.volume.to(estimate.dtype)
+    check_shape("reference", ref_volume, (estimate.shape[0], 1, *grid.shape_zyx))
+    check_shape("query", query_volume, tuple(ref_volume.shape))
     E = estimate
     for sigma, robust, iterations in config.levels:
-        E, _ = gauss_newton_refine(gaussian_blur3d(reference.volume, sigma), gaussian_blur3d(query.volume, sigma), E,
+        E, _ = gauss_newton_refine(gaussian_blur3d(ref_volume, sigma), gaussian_blur3d(query_volume, sigma), E,
                                    grid, iterations=iterations, damping=config.damping, robust_scale=robust,
                                    max_step=config.max_step)
     return E

@@ -46,12 +46,12 @@ def egomotion_input_volume(net, rgb: torch.Tensor, depth: torch.Tensor, pix_T_ca
                               occupancy=getattr(net, "input_occupancy", "binary"))
 
 
-def egomotion_fine_frame(net, depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor, *,
-                         reference: bool = True, query: bool = True) -> FineFrame | None:
+def egomotion_fine_frame(net, depth: torch.Tensor, pix_T_cam: torch.Tensor,
+                         cam_T_ref: torch.Tensor) -> FineFrame | None:
     """One frame's data for an egomotion module's fine stage (core.models.egomotion_fine.fine_frame with the
     module's grid and stage; depth B×V×H×W, pix_T_cam / cam_T_ref B×V×4×4), or None when the module has no
-    fine stage (or is training: the stage runs at inference only). reference / query: which parts to build
-    (fine_frame: frame 0 of a pair needs its TSDF, frame 1 its points, a stream's frame both)."""
+    fine stage (or is training: the stage runs at inference only). Its parts are built when the stage reads
+    them (FineFrame)."""
     if net.fine_grid is None or net.training:
         return None
-    return fine_frame(depth, pix_T_cam, cam_T_ref, net.grid, net.fine, reference=reference, query=query)
+    return fine_frame(depth, pix_T_cam, cam_T_ref, net.grid, net.fine)

@@ -57,6 +57,6 @@ def estimate_egomotion(bundle, *, rgb0: torch.Tensor, depth0: torch.Tensor, pix_
     cam_T_ref1 = rig_cam_T_ref(world_T_cam1, world_T_ref1)
     vol0 = egomotion_input_volume(net, rgb0, depth0, pix_T_cam0, cam_T_ref0)  # B×4×Z×Y×X
     vol1 = egomotion_input_volume(net, rgb1, depth1, pix_T_cam1, cam_T_ref1)
-    fine = (egomotion_fine_frame(net, depth0, pix_T_cam0, cam_T_ref0, query=False),  # FineFrame or None
-            egomotion_fine_frame(net, depth1, pix_T_cam1, cam_T_ref1, reference=False))
+    fine = (egomotion_fine_frame(net, depth0, pix_T_cam0, cam_T_ref0),  # FineFrame (parts built on use) or None
+            egomotion_fine_frame(net, depth1, pix_T_cam1, cam_T_ref1))
     return egomotion_from_volumes(net, vol0, vol1, cam_T_ref0, cam_T_ref1, fine=fine)

@@ -173,9 +173,9 @@ def test_one_step_recovers_a_shift_along_a_walls_normal_exactly():
     flat = torch.full_like(depth0, 3.3)  # a fronto-parallel wall filling the image
     config = FineAlignment(**{**DEFAULT_FINE_ALIGNMENT, "iterations": 1, "robust": 1.0, "damping": 0.0})
     cam = torch.eye(4, dtype=D)[None, None]
-    f0 = fine_frame(flat, pix, cam, ROOM, config, query=False)
-    f1 = fine_frame(flat, pix, cam, ROOM, config, reference=False)
-    assert f0.points is None and f1.volume is None and bool(f1.points_valid.any())
+    f0 = fine_frame(flat, pix, cam, ROOM, config)
+    f1 = fine_frame(flat, pix, cam, ROOM, config)
+    assert bool(f1.points_valid.any())
     start = _pose([0.0, 0.0, 0.0], [0.0, 0.0, 0.05])
     E = align_fine(start, f0, f1, fine_grid(ROOM, config.factor), config)
     assert abs(float(E[0, 2, 3])) < 1e-6 and torch.allclose(E[0, :3, :3], torch.eye(3, dtype=D), atol=1e-9)
@@ -184,11 +184,34 @@ def test_one_step_recovers_a_shift_along_a_walls_normal_exactly():
 def test_a_tsdf_stage_needs_frame_0s_tsdf_and_frame_1s_points():
     depth0, pix = _room_depth(torch.eye(4, dtype=D))
     config = FineAlignment(**DEFAULT_FINE_ALIGNMENT)
-    cam = torch.eye(4, dtype=D)[None, None]
-    points_only = fine_frame(depth0, pix, cam, ROOM, config, reference=False)
+    frame = fine_frame(depth0, pix, torch.eye(4, dtype=D)[None, None], ROOM, config)
     grid = fine_grid(ROOM, config.factor)
+    points_only = FineFrame(None, frame.points, frame.points_valid)
     with pytest.raises(ValueError, match="TSDF stage needs"):
         align_fine(torch.eye(4, dtype=D)[None], points_only, points_only, grid, config)
-    with pytest.raises(ValueError, match="TSDF stage needs"):
+    with pytest.raises(ValueError, match="TSDF stage needs"):  # bare tensors are splat volumes
         align_fine(torch.eye(4, dtype=D)[None], torch.zeros(1, 1, *grid.shape_zyx, dtype=D),
                    torch.zeros(1, 1, *grid.shape_zyx, dtype=D), grid, config)
+
+
+def test_a_frames_parts_are_built_once_and_only_when_read(monkeypatch):
+    """A pair reads frame 0's TSDF and frame 1's points: frame 1's TSDF (most of the cost) is never built;
+    a part read twice is built once; the lazy frame aligns exactly as one built eagerly."""
+    import core.models.egomotion_fine as fine
+
+    calls = []
+    real = fine.projective_tsdf
+    monkeypatch.setattr(fine, "projective_tsdf", lambda *a, **k: calls.append(1) or real(*a, **k))
+    gt = _pose([0.004, 0.012, -0.003], [0.12, 0.03, 0.25])[0]
+    depth0, pix = _room_depth(torch.eye(4, dtype=D))
+    depth1, _ = _room_depth(gt)
+    cam = torch.eye(4, dtype=D)[None, None]
+    config = FineAlignment(**DEFAULT_FINE_ALIGNMENT)
+    f0, f1 = fine_frame(depth0, pix, cam, ROOM, config), fine_frame(depth1, pix, cam, ROOM, config)
+    assert calls == []
+    start = _pose([0.0, 0.004, 0.0], [0.05, 0.0, -0.05]) @ gt[None]
+    E = align_fine(start, f0, f1, fine_grid(ROOM, config.factor), config)
+    assert len(calls) == 1  # frame 0's TSDF only
+    assert f0.volume is f0.volume and len(calls) == 1
+    eager = FineFrame(f0.volume, f1.points, f1.points_valid)
+    torch.testing.assert_close(align_fine(start, eager, eager, fine_grid(ROOM, config.factor), config), E)
