@@ -12,8 +12,9 @@ aligns the frames' geometry. Two kinds:
   differences of the trilinear TSDF (one-sided next to an unknown voxel), Huber weights, `iterations` steps.
   The points are frame 1's depth points reduced to one per cube of `point_cell` map voxels (as the ICP
   baseline's cloud: core.eval.protocols.egomotion). Measured on the small report's 32 moving-camera test
-  pairs (docs/findings.md, "Egomotion"): started 0.6° / 0.25 m off the truth, a TSDF on 0.125 m voxels
-  (factor 4) ends where point-to-plane ICP ends (0.99 × / 0.95 × its mean errors); coarser grids do not.
+  pairs (docs/findings.md, "Egomotion"; tests/benchmarks/bench_egomotion_fine.py): started 0.6° / 0.25 m
+  off the truth, a TSDF on 0.125 m voxels (factor 4) ends where point-to-plane ICP ends (0.99 × / 0.95 × its
+  mean errors); coarser grids do not.
   A saved stage without a `kind` is a splat stage; a module saved before it had any fine stage gets this one.
 - "splat" (every bundle whose saved stage has no `kind`): Gauss-Newton of the max over the views of each
   view's surface splat (core.geometry.splat.surface_splat, clamped to 1) at `factor` times the resolution,
