@@ -211,7 +211,8 @@ def align_points_to_tsdf(estimate: torch.Tensor, tsdf: torch.Tensor, points: tor
         # The gradient by central differences where both neighbours are known, one-sided where one is (at a
         # view's border or the band's edge; an unknown voxel holds 0, which a central difference would read as
         # a steep slope); a point needs each axis to have a known neighbour. Why not all six required: that
-        # dropped the points at the views' borders and ended 1.10 × / 1.20 × ICP's errors on 8 test pairs.
+        # dropped the points at the views' borders and ended 1.5 × / 1.3 × ICP's mean errors on the report's 32
+        # moving test pairs instead of 0.99 × / 0.95 × (docs/findings.md, "Egomotion").
         kn = known > 0.999  # B×7×M
         plus, minus = kn[:, 1:4], kn[:, 4:7]  # B×3×M
         central = (phi[:, 1:4] - phi[:, 4:7]) / (2 * h)

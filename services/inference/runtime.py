@@ -60,10 +60,6 @@ class RuntimeConfig:
             raise BundleError(f"frame_dt must be positive seconds, got {self.frame_dt}")
         if isinstance(self.egomotion_fine, bool):  # the option was a boolean until session 25: True = its own stage
             object.__setattr__(self, "egomotion_fine", "module" if self.egomotion_fine else "off")
-        if isinstance(self.egomotion_fine, bool):  # the option was a boolean until session 25: True = its own stage
-            object.__setattr__(self, "egomotion_fine", "module" if self.egomotion_fine else "off")
-        if isinstance(self.egomotion_fine, bool):  # the option was a boolean until session 25: True = its own stage
-            object.__setattr__(self, "egomotion_fine", "module" if self.egomotion_fine else "off")
         if self.egomotion_fine not in ("module", "splat", "off"):
             raise BundleError(f"egomotion_fine must be module, splat or off, got {self.egomotion_fine!r}")
 
