@@ -29,6 +29,7 @@ from core.geometry import se3
 from core.geometry.camera import depth_to_points, project
 from core.geometry.grid import GridConfig
 from core.geometry.voxelize import voxelize
+from core.precision import full_precision
 
 
 def bilinear_depth(depth: torch.Tensor, uv: torch.Tensor, *, max_spread: float = 0.05) -> torch.Tensor:
@@ -75,6 +76,7 @@ def _box_sum(vol: torch.Tensor, radius: int, dim: int) -> torch.Tensor:
     return c.narrow(dim, 2 * radius + 1, n) - c.narrow(dim, 0, n)  # C[i + r] − C[i − r − 1]
 
 
+@full_precision  # depths, projections and distances in float32 at least under bf16 autocast
 def projective_tsdf(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor, grid: GridConfig, *,
                     truncation_m: float, band_voxels: int, max_spread: float = 0.05) -> torch.Tensor:
     """The views' fused projective TSDF on `grid` (module docstring).

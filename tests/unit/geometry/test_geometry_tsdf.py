@@ -133,3 +133,12 @@ def test_cell_means_of_an_empty_cloud_are_one_invalid_row():
     points, points_valid = cell_mean_points(torch.zeros(2, 5, 3, dtype=D), torch.zeros(2, 5, dtype=torch.bool),
                                             GRID, 0.5)
     assert points.shape == (2, 1, 3) and not bool(points_valid.any())
+
+
+def test_the_tsdf_is_the_same_under_bf16_autocast():
+    depth, pix, cam_T_ref = (t.float() for t in _views())
+    want = projective_tsdf(depth, pix, cam_T_ref, GRID, truncation_m=0.75, band_voxels=20)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        got = projective_tsdf(depth, pix, cam_T_ref, GRID, truncation_m=0.75, band_voxels=20)
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got, want)
