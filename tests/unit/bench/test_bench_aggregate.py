@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from services.bench.aggregate import detection_draws_table, fmt, flow_table, spread
+from core.eval.protocols.egomotion import LEARNED_ROW
+from services.bench.aggregate import detection_draws_table, egomotion_table, fmt, flow_table, spread
 from services.bench.evaluations import detection_over_draws
 from services.bench.plan import BenchConfigError, plan_for, with_steps
 
@@ -213,3 +214,19 @@ def test_a_rerun_with_other_workers_is_refused_only_where_a_detector_would_train
         plan_for("small", workers=3, label_budgets=(2, None))
     with pytest.raises(BenchConfigError, match="labels 64 record"):                # every budget is "all"
         plan_for("small", workers=65, label_budgets=(None,))
+
+
+def test_egomotion_table_lists_the_models_rows_first_and_spreads_each_over_seeds():
+    def seed(model: float, learned: float | None) -> dict:
+        methods = {"identity": {"rot_err_rad_mean": 0.01, "trans_err_m_mean": 0.8, "pairs": 32},
+                   "icp": {"rot_err_rad_mean": 0.0001, "trans_err_m_mean": 0.003, "pairs": 32},
+                   "model": {"rot_err_rad_mean": model, "trans_err_m_mean": 0.002, "pairs": 32}}
+        if learned is not None:
+            methods[LEARNED_ROW] = {"rot_err_rad_mean": learned, "trans_err_m_mean": 0.03, "pairs": 32}
+        return {"egomotion": {"methods": methods}}
+    table = egomotion_table({"0": seed(0.0002, 0.002), "1": seed(0.0004, 0.004)})
+    assert list(table) == ["model", LEARNED_ROW, "icp", "identity"]
+    assert table["model"]["rot_rad"]["mean"] == pytest.approx(0.0003)
+    assert table[LEARNED_ROW]["trans_m"]["values"] == [0.03, 0.03]
+    # a seed without the row (a module without a last stage) leaves it out of that seed's spread
+    assert egomotion_table({"0": seed(0.0002, None), "1": seed(0.0004, 0.004)})[LEARNED_ROW]["rot_rad"]["values"] == [0.004]
