@@ -60,6 +60,31 @@ def random_pretrain_bundle(preset, *, seed: int, device, task_options: dict | No
     return Bundle(preset=preset, modules=dict(task.exported_modules()), meta={"provenance": {"random_init": seed}})
 
 
+def untrained_egomotion_bundle(preset, *, seed: int, device) -> Bundle:
+    """The egomotion stage's module untrained (seeded), with the same last stage, as an in-memory bundle: the
+    control that says how much of the module's accuracy its training brings."""
+    from core.tasks import build_task
+
+    torch.manual_seed(seed)
+    task = build_task("egomotion", preset).to(device).eval()
+    return Bundle(preset=preset, modules=dict(task.exported_modules()), meta={"provenance": {"random_init": seed}})
+
+
+def egomotion_with_control(trained: Bundle, untrained: Bundle, records, config, *, device) -> dict:
+    """core.eval.protocols.egomotion's summary of `trained` (its rows, ICP and identity), plus the untrained
+    module's own rows renamed "untrained module" and "untrained module, learned stages only"."""
+    from dataclasses import replace
+
+    from core.eval.protocols import egomotion as protocol
+
+    summary = protocol.summarize(protocol.evaluate(trained, records, config, device=device))
+    control = protocol.summarize(protocol.evaluate(untrained, records, replace(config, icp=False), device=device))
+    for name, row in control["methods"].items():
+        if name.startswith("model"):
+            summary["methods"]["untrained module" + name[len("model"):]] = row
+    return summary
+
+
 def retrieval(bundle: Bundle, records, *, device, per_example: int, cube: int, seed: int) -> dict:
     """{"2d": {"p@1", "p@5", "p@10", "queries"}, "3d": {...}, "mode_2d", "skipped"}."""
     from core.eval.protocols.retrieval import RetrievalEvalConfig, evaluate

@@ -216,7 +216,9 @@ def _egomotion_section(report: Report, ego: dict) -> None:
                 "point-to-plane ICP on the two depth clouds, and the identity (no motion). The module's last stage "
                 "has no weights (core/models/egomotion_fine.py; modules trained since session 25: frame 1's depth "
                 "points aligned with frame 0's TSDF on a grid 4× finer than the map's) and starts where its learned "
-                "stages end; the row \"model, learned stages only\" is that starting point.")
+                "stages end; the row \"model, learned stages only\" is that starting point. The \"untrained "
+                "module\" rows are the same module before training, with the same last stage: what training "
+                "adds is the difference between the two.")
     report.table(["method", "R (rad)", "t (m)", "pairs"],
                  [[m, agg.fmt(v["rot_rad"], 4), agg.fmt(v["trans_m"], 4), agg.fmt(v["pairs"], 0)] for m, v in ego.items()])
 

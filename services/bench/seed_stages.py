@@ -187,8 +187,10 @@ def seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict,
         if not moving_cam:
             return {"methods": {}, "skipped": "no moving-camera pairs among the test records"}
         ego_config = egomotion_protocol.EgomotionEvalConfig(perturb_deg=0.0, perturb_m=0.0, seed=seed, icp=True)
-        return egomotion_protocol.summarize(egomotion_protocol.evaluate(load_bundle(ego_dir, device), moving_cam,
-                                                                        ego_config, device=device))
+        # beside it the same module untrained: its weightless last stage alone may reach ICP (session 25)
+        return evaluations.egomotion_with_control(
+            load_bundle(ego_dir, device), evaluations.untrained_egomotion_bundle(preset, seed=seed, device=device),
+            moving_cam, ego_config, device=device)
     result["egomotion"] = evaluate("egomotion/moving_camera", egomotion_metrics, reads=(ego_dir,))
 
     # Moving objects: each flow bundle stabilised with the poses, the contrastive-feature and the

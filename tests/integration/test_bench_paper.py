@@ -105,6 +105,9 @@ def test_metrics_json_has_every_key(bench_run):
         for dim in ("2d", "3d"):
             p = [metrics["retrieval"][arm][dim][k]["mean"] for k in ("p@1", "p@5", "p@10")]
             assert 0.0 <= p[0] <= p[1] <= p[2] <= 1.0   # precision at K cannot fall as K grows
+    # egomotion: the trained module's rows, the baselines, and the untrained module's rows (the control)
+    assert {"model", "model, learned stages only", "icp", "identity", "untrained module",
+            "untrained module, learned stages only"} <= set(metrics["egomotion"])
     for setting in ("static", "moving"):
         assert "2.5D Farneback" in metrics["moving"][setting]
         assert "contrastive, GT egomotion" in metrics["moving"][setting]
