@@ -11,9 +11,9 @@ least one view's value. Why bilinear depth: the zero crossing of a plane seen at
 the plane; a nearest-pixel lookup puts a staircase there, whose alignment optimum lies off the true pose
 (measured on 8 of the small report's moving-camera test pairs, a scratch version of the alignment started
 from the truth: 0.00066 rad / 0.011 m off with nearest pixels at 0.125 m voxels, 0.00013 / 0.0027 with
-bilinear depth; docs/findings.md, "Egomotion"). Where
-the four pixels around the projection disagree by more than `max_spread` of their largest depth (a depth
-edge) the view says nothing, instead of interpolating across the edge.
+bilinear depth; docs/findings.md, "Egomotion"). Where the four pixels around the projection disagree by more
+than `max_spread` of their largest depth (a depth edge) the view says nothing, instead of interpolating across
+the edge.
 
 Only voxels within `band_voxels` of one of the frame's own depth points are evaluated (the rest stay unknown):
 alignment reads the TSDF only near surfaces, and the band is a sixth of the grid (small preset, factor 4).
@@ -22,7 +22,6 @@ alignment reads the TSDF only near surfaces, and the band is a sixth of the grid
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 
 from core.errors import check_shape
 from core.geometry import se3
