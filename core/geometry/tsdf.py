@@ -50,14 +50,22 @@ def bilinear_depth(depth: torch.Tensor, uv: torch.Tensor, *, max_spread: float =
     return torch.where(ok, value, torch.zeros_like(value))
 
 
+def views_points_in_ref(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every view's depth points in `ref`: depth B×V×H×W, pix_T_cam / cam_T_ref B×V×4×4 -> (xyz B×(V·H·W)×3,
+    valid B×(V·H·W))."""
+    B, V, H, W = depth.shape
+    xyz_cam, valid = depth_to_points(depth.reshape(B * V, H, W), pix_T_cam.reshape(B * V, 4, 4))  # BV×HW×3, BV×HW
+    xyz_ref = se3.apply(se3.invert(cam_T_ref.reshape(B * V, 4, 4)), xyz_cam)  # BV×HW×3
+    return xyz_ref.reshape(B, V * H * W, 3), valid.reshape(B, V * H * W)
+
+
 def surface_band(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Tensor, grid: GridConfig,
                  band_voxels: int) -> torch.Tensor:
     """Voxels within `band_voxels` (Chebyshev) of a depth point of any view: depth B×V×H×W, pix_T_cam /
     cam_T_ref B×V×4×4 -> B×Z×Y×X bool."""
-    B, V, H, W = depth.shape
-    xyz_cam, valid = depth_to_points(depth.reshape(B * V, H, W), pix_T_cam.reshape(B * V, 4, 4))  # BV×HW×3, BV×HW
-    xyz_ref = se3.apply(se3.invert(cam_T_ref.reshape(B * V, 4, 4)), xyz_cam)  # BV×HW×3
-    occupied = voxelize(xyz_ref.reshape(B, V * H * W, 3), grid, valid.reshape(B, V * H * W))  # B×1×Z×Y×X
+    xyz_ref, valid = views_points_in_ref(depth, pix_T_cam, cam_T_ref)  # B×N×3, B×N
+    occupied = voxelize(xyz_ref, grid, valid)  # B×1×Z×Y×X
     # Dilation by a (2b+1)³ cube as three 1D box sums (a cube is separable), each a difference of cumulative
     # sums: O(1) per voxel and axis (pooling ops took ~0.5 s on a small grid at factor 4, one thread).
     for dim in (2, 3, 4):

@@ -172,8 +172,7 @@ class EgomotionNet(nn.Module):
         B×4×4; the estimate as it is in training mode, without a fine stage, or without the frames."""
         if self.fine is None or self.training or reference_fine is None or query_fine is None:
             return ref0_T_ref1
-        as_frame = lambda f: f if isinstance(f, FineFrame) else FineFrame(f)  # noqa: E731 (a bare splat volume)
-        return align_fine(ref0_T_ref1, as_frame(reference_fine), as_frame(query_fine), self.fine_grid, self.fine)
+        return align_fine(ref0_T_ref1, reference_fine, query_fine, self.fine_grid, self.fine)  # wraps bare volumes
 
     def scale_grid(self, scale: float) -> GridConfig:
         return self.grid if scale == 1.0 else self.grid.scaled(scale)

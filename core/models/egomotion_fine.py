@@ -38,7 +38,7 @@ from core.geometry.camera import depth_to_points
 from core.geometry.grid import GridConfig, mem_T_ref
 from core.geometry.resample import sample_volume_at
 from core.geometry.splat import surface_splat
-from core.geometry.tsdf import cell_mean_points, projective_tsdf
+from core.geometry.tsdf import cell_mean_points, projective_tsdf, views_points_in_ref
 from core.models.egomotion_refine import clamp_norm, gauss_newton_refine, gaussian_blur3d
 from core.precision import full_precision
 
@@ -150,11 +150,8 @@ def fine_frame(depth: torch.Tensor, pix_T_cam: torch.Tensor, cam_T_ref: torch.Te
                                band_voxels=math.ceil(config.truncation) + 1)
 
     def points() -> tuple[torch.Tensor, torch.Tensor]:  # B×M×3, B×M
-        B, V, H, W = depth.shape
-        xyz_cam, valid = depth_to_points(depth.reshape(B * V, H, W), pix_T_cam.reshape(B * V, 4, 4))  # BV×HW×3
-        xyz_ref = se3.apply(se3.invert(cam_T_ref.reshape(B * V, 4, 4)), xyz_cam)  # BV×HW×3
-        return cell_mean_points(xyz_ref.reshape(B, V * H * W, 3), valid.reshape(B, V * H * W), map_grid,
-                                config.point_cell * map_grid.voxel_size)
+        xyz_ref, valid = views_points_in_ref(depth, pix_T_cam, cam_T_ref)  # B×N×3, B×N
+        return cell_mean_points(xyz_ref, valid, map_grid, config.point_cell * map_grid.voxel_size)
     return FineFrame(tsdf, points)
 
 
