@@ -49,6 +49,9 @@ from services.bench.stopping import MARKER as TRAIN_MARKER
 from services.threads import ThreadPlan, plan_threads
 
 DATA_MARKER = "manifest.json"
+# How long an interrupted run waits for its seed workers to save and exit before killing them: a
+# small-preset flow step takes up to ~15 s on one time-sliced thread; a worker mid-evaluation stops at once.
+WORKER_STOP_GRACE_S = 120.0
 
 
 def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds: int = 1,
@@ -151,9 +154,18 @@ def _run_seed_workers(out: Path, config: BenchConfig, plan: ThreadPlan, log: Cal
                                       f"log {log_path})")
                         log(f"[bench] seed {seed}: worker FAILED, exit {proc.returncode}")
     finally:
-        for proc, _ in running.values():   # interrupted: stop our own workers (rerun resumes them)
+        # Interrupted: stop our own workers (a rerun resumes them). SIGTERM first: a training stage then
+        # finishes the step under way and saves its checkpoint (services/training/stop_signal.py); a
+        # worker still running after the grace period is killed and resumes from its last checkpoint.
+        for proc, _ in running.values():
             proc.terminate()
-            proc.wait(timeout=30)
+        deadline = time.monotonic() + WORKER_STOP_GRACE_S
+        for proc, _ in running.values():
+            try:
+                proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
     if failed:
         raise BenchConfigError("seed worker(s) failed: " + "; ".join(failed))
 

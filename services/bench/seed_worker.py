@@ -5,7 +5,8 @@
 Reads the plan the parent wrote (REPORT_DIR/work/plan.json), sets T torch threads before any work
 (the parent chose T so that processes × threads fits the usable CPUs), and runs every stage of seed S
 (services.bench.paper.run_one_seed). Finished stages are skipped, so a rerun resumes. Exit status 0 on
-success; 2 with one line naming the problem otherwise.
+success; 2 with one line naming the problem otherwise; 130 when SIGINT or SIGTERM stopped it (a training
+stage stops after the step under way and saves its checkpoint there: services/training/stop_signal.py).
 """
 
 from __future__ import annotations
@@ -63,6 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     except (N3dmapError, OSError) as e:
         print(f"error: seed {args.seed}: {e}", file=sys.stderr, flush=True)
         return 2
+    except KeyboardInterrupt as e:  # SIGINT / SIGTERM: a training stage stops between steps, checkpoint saved
+        print(f"[bench] seed {args.seed}: stopped ({e or 'interrupted'}); a rerun resumes it", flush=True)
+        return 130
     return 0
 
 

@@ -77,8 +77,8 @@ def main(argv: list[str] | None = None) -> int:
         # a read-only or full disk, a port or endpoint that cannot be reached) — their fix, not a bug.
         print(f"n3dmap {args.command}: error: {_one_line(e)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"n3dmap {args.command}: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:  # a TrainingInterrupted says where its checkpoint is
+        print(f"n3dmap {args.command}: interrupted" + (f": {_one_line(e)}" if str(e) else ""), file=sys.stderr)
         return 130
     return int(result or 0)
 

@@ -2,7 +2,9 @@
 
 `run_training(config)` is what `n3dmap train <task>` calls when no `--address` is given:
 
-- workers=0: the loop runs right here (no Ray), checkpoints under RUN_DIR/checkpoints/.
+- workers=0: the loop runs right here (no Ray), checkpoints under RUN_DIR/checkpoints/. The first Ctrl-C or
+  SIGTERM stops it after the step under way, with a checkpoint there (services/training/stop_signal.py),
+  and raises TrainingInterrupted; a rerun resumes at that step.
 - workers>=1: an embedded local Ray (one logical CPU more than the workers: Ray Data's read tasks
   need one, see docs/ecosystem.md#ray) — or, with `config.attach`, the Ray cluster this process runs in (a
   Ray Jobs entrypoint) — runs `TorchTrainer` with a Ray Data stream of the shards split over the
@@ -30,7 +32,10 @@ from services.training.checkpoints import (
 )
 from services.training.config import TrainJobConfig
 from services.training.progress import MetricsTail
-from services.training.loop import CORE_TASKS, LoopOutcome, TaskSpec, TrainingError, train_loop
+from services.training.loop import (
+    CORE_TASKS, LoopOutcome, TaskSpec, TrainingError, TrainingInterrupted, train_loop,
+)
+from services.training.stop_signal import graceful_stop
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
@@ -74,6 +79,8 @@ def run_training(config: TrainJobConfig, *, spec: TaskSpec = CORE_TASKS) -> RunS
     else:
         _check_same_mode(config)
         outcome, checkpoint_dir = _run_in_process(config, spec) if config.workers == 0 else _run_on_ray(config)
+    if outcome.status == "interrupted":
+        raise TrainingInterrupted(outcome.message)
     if outcome.status != "finished":
         raise TrainingError(outcome.message)
     if checkpoint_dir is None:  # nothing trained this time (already at --steps): use the newest
@@ -114,7 +121,8 @@ def _run_in_process(config: TrainJobConfig, spec: TaskSpec) -> tuple[LoopOutcome
     from services.training.sessions import LocalSession
 
     session = LocalSession(config)
-    outcome = train_loop(config, session, spec)
+    with graceful_stop() as stop_requested:  # Ctrl-C / SIGTERM: stop between steps, checkpoint saved
+        outcome = train_loop(config, session, spec, stop_requested=stop_requested)
     return outcome, session.store.latest()
 
 

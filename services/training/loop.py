@@ -17,6 +17,9 @@ Guarantees:
 - a non-finite loss or gradient norm stops every rank before the optimizer step and before any
   checkpoint of that step, so the newest checkpoint is the last good one; the loop returns a
   `LoopOutcome` with status "non_finite" and a one-line message.
+- in-process runs only: once `stop_requested()` names a signal (services/training/stop_signal.py: the
+  first Ctrl-C or SIGTERM), the loop saves a checkpoint at the step it just finished (unless that step's
+  is saved already) and returns status "interrupted"; a rerun resumes at that step.
 """
 
 from __future__ import annotations
@@ -37,11 +40,18 @@ from services.training.checkpoints import (
 from services.training.config import TrainJobConfig
 from services.training.progress import ProgressLogger
 from services.training.seeding import step_seed
+from services.training.stop_signal import never
 from services.training.weight_average import WeightAverage
 
 
 class TrainingError(N3dmapError):
     """A run stopped on purpose (non-finite loss, data too small): the message says why."""
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """An in-process run stopped by a signal between two steps, its checkpoint saved (stop_signal.py); the
+    message says at which step and how to resume. A KeyboardInterrupt, as the signal would have raised:
+    clean-ups that catch Exception let it through, and the CLI reports it as an interruption (exit 130)."""
 
 
 @dataclass(frozen=True)
@@ -112,7 +122,7 @@ class TrainSession(Protocol):
 class LoopOutcome:
     """What the loop returns (rank 0's value becomes Ray's Result.return_value)."""
 
-    status: str                      # "finished" | "non_finite" | "error"
+    status: str                      # "finished" | "non_finite" | "error" | "interrupted"
     step: int                        # last completed step
     start_step: int                  # step the run (re)started from
     message: str = ""
@@ -179,8 +189,11 @@ def _format_bad(values: dict[str, float]) -> str:
     return ", ".join(f"{k}={v}" for k, v in values.items() if not math.isfinite(v)) or "?"
 
 
-def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = CORE_TASKS) -> LoopOutcome:
-    """Run (or resume) the training of `config` on this worker; see the module docstring."""
+def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = CORE_TASKS, *,
+               stop_requested: Callable[[], str | None] = never) -> LoopOutcome:
+    """Run (or resume) the training of `config` on this worker; see the module docstring.
+    stop_requested: in-process runs only (every rank would have to agree): the name of the signal that
+    asked the run to stop, or None."""
     keep_heap()  # services.malloc: each step's large tensors reuse the heap instead of fresh mmaps (Ray workers too)
     torch.manual_seed(config.seed)  # identical initial weights on every rank (DDP also broadcasts)
     device = session.device
@@ -266,6 +279,17 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
                 saved_step = step
             if step >= config.steps:
                 break
+            why = stop_requested()
+            if why is not None:
+                if saved_step != step:
+                    _report_checkpoint(config, session, task, optimizer, step, values, average)
+                    saved_step = step
+                done = step - start_step
+                mean = {k: v / done for k, v in zip(names or [], sums.tolist())}
+                return LoopOutcome(status="interrupted", step=step, start_step=start_step, last_metrics=last,
+                                   mean_metrics=mean, message=f"stopped by {why} after step {step} of "
+                                   f"{config.steps}; its checkpoint is saved in {config.run_dir}: rerun the same "
+                                   f"command to resume there")
         if batches_this_epoch == 0:
             raise DataError(f"{config.data_dir}: not one full batch of {config.batch_size} records "
                             f"per worker ({session.world_size} worker(s)); use a smaller "

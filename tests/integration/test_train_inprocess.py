@@ -5,14 +5,23 @@ Trains the real pretrain task: the loss decreases, both objectives train and exp
 """
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 import torch
 
 from services.cli.main import main
+from services.training.checkpoints import checkpoint_dir_name
 from services.training.progress import read_metrics
 
 pytestmark = pytest.mark.integration
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _train(data, run_dir, *extra) -> int:
@@ -138,3 +147,40 @@ def test_ema_decay_exports_the_weight_average(tiny_train_data, tmp_path, capsys)
     assert not torch.equal(average[f"mapper.{name}"], last[f"mapper.{name}"])
     assert main(["bundle", "info", str(run / "bundle")]) == 0
     assert "weight average 0.9" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_stops_the_run_between_steps_with_its_checkpoint_and_a_rerun_resumes(tiny_train_data, tmp_path, sig):
+    # a real `n3dmap train` process, as a user's Ctrl-C (SIGINT) or a scheduler's `kill` (SIGTERM) stops it
+    run = tmp_path / "run"
+    command = [sys.executable, "-m", "services.cli.main", "train", "occupancy", "--data", str(tiny_train_data),
+               "--run-dir", str(run), "--workers", "0", "--device", "cpu", "--log-every", "1",
+               "--batch-size", "2", "--checkpoint-every", "1000"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([*command, "--steps", "1000"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not (run / "metrics.jsonl").is_file() or len(read_metrics(run / "metrics.jsonl")) < 2:
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.2)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    stopped = max(r["step"] for r in read_metrics(run / "metrics.jsonl"))
+    assert f"n3dmap train: interrupted: stopped by {sig.name} after step {stopped} of 1000" in err
+    assert "rerun the same command to resume" in err
+    assert [p.name for p in (run / "checkpoints").iterdir()] == [checkpoint_dir_name(stopped)]
+    assert not (run / "bundle").exists()
+
+    done = subprocess.run([*command, "--steps", str(stopped + 2)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert f"resuming occupancy from step {stopped}" in done.stdout
+    assert [r["step"] for r in read_metrics(run / "metrics.jsonl")] == list(range(1, stopped + 3))
+    assert (run / "bundle" / "bundle.json").is_file()

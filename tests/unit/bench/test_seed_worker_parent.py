@@ -68,3 +68,28 @@ def test_a_worker_with_its_parent_keeps_running():
     finally:
         child.kill()
         child.wait(timeout=10)
+
+
+def test_a_worker_stopped_by_a_signal_says_so_and_exits_130(monkeypatch, capsys):
+    """A training stage stopped by SIGINT / SIGTERM raises TrainingInterrupted (its checkpoint saved): the
+    worker reports it in one line and exits 130, which the parent reports as a stopped, resumable seed."""
+    import services.bench.paper as paper
+    from services.bench import seed_worker
+    from services.training.loop import TrainingInterrupted
+
+    def stopped(out, seed, log):
+        raise TrainingInterrupted("stopped by SIGTERM after step 37 of 100; its checkpoint is saved in RUN: rerun "
+                                  "the same command to resume there")
+
+    monkeypatch.setattr(paper, "run_one_seed", stopped)
+    monkeypatch.setattr(seed_worker, "exit_with_parent", lambda parent=None: None)
+    import torch
+
+    threads = torch.get_num_threads()  # main() sets the process's torch threads
+    try:
+        assert seed_worker.main(["--out", "unused", "--seed", "4", "--threads", "1"]) == 130
+    finally:
+        torch.set_num_threads(threads)
+    out = capsys.readouterr().out.splitlines()
+    assert out[-1] == ("[bench] seed 4: stopped (stopped by SIGTERM after step 37 of 100; its checkpoint is saved "
+                       "in RUN: rerun the same command to resume there); a rerun resumes it")

@@ -170,3 +170,45 @@ def test_a_run_resumes_only_in_the_mode_that_started_it(tmp_path):
     (tmp_path / "run" / "checkpoints").rename(tmp_path / "run" / "ray_train")   # as a Ray run leaves it
     with pytest.raises(TrainingError, match=r"--workers >= 1 \(Ray Train\).*new --run-dir"):
         _check_same_mode(_config(tmp_path, steps=20))
+
+
+def _stop_after(step_count: int, calls: list[int]):
+    """A stop_requested that names SIGTERM from its `step_count`-th call on (the loop asks once per step)."""
+    def stop_requested():
+        calls.append(1)
+        return "SIGTERM" if len(calls) >= step_count else None
+    return stop_requested
+
+
+@pytest.mark.parametrize("stop_at, checkpoints", [(7, [5, 7]), (10, [5, 10])])
+def test_a_stop_request_saves_the_step_it_ends_on_and_a_rerun_resumes_there(tmp_path, stop_at, checkpoints):
+    records = toy_records(32)
+    config = _config(tmp_path, steps=20, checkpoint_every=5)
+    calls: list[int] = []
+    outcome = train_loop(config, LocalSession(config, dataset=records), toy_spec(),
+                         stop_requested=_stop_after(stop_at, calls))
+    assert outcome.status == "interrupted" and outcome.step == stop_at and len(calls) == stop_at
+    assert "SIGTERM" in outcome.message and f"after step {stop_at} of 20" in outcome.message
+    store = LocalSession(config, dataset=[]).store
+    # step 10 is a periodic checkpoint already: the stop does not write it twice
+    assert [read_checkpoint_state(p).step for p in store.list()] == checkpoints
+    assert math.isfinite(outcome.mean_metrics["loss"])
+    again = _run(config, records)
+    assert again.status == "finished" and again.start_step == stop_at and again.step == 20
+    assert [r["step"] for r in read_metrics(config.metrics_path)] == list(range(1, 21))  # nothing repeated
+
+
+def test_a_stop_request_at_the_first_step_saves_it_and_at_the_last_step_the_run_just_finishes(tmp_path):
+    config = _config(tmp_path, steps=6, checkpoint_every=5)
+    outcome = train_loop(config, LocalSession(config, dataset=toy_records(32)), toy_spec(),
+                         stop_requested=lambda: "SIGINT")
+    assert outcome.status == "interrupted" and outcome.step == 1
+    assert [read_checkpoint_state(p).step for p in LocalSession(config, dataset=[]).store.list()] == [1]
+    # resumed at 1, asked to stop at every step: it stops at 5 (a periodic checkpoint, not written twice) ...
+    outcome = train_loop(config, LocalSession(config, dataset=toy_records(32)), toy_spec(),
+                         stop_requested=_stop_after(4, []))
+    assert outcome.status == "interrupted" and (outcome.start_step, outcome.step) == (1, 5)
+    # ... and a run whose next step is its last finishes: there is nothing left to resume
+    outcome = train_loop(config, LocalSession(config, dataset=toy_records(32)), toy_spec(),
+                         stop_requested=lambda: "SIGINT")
+    assert outcome.status == "finished" and (outcome.start_step, outcome.step) == (5, 6)

@@ -1,0 +1,44 @@
+"""graceful_stop: SIGINT / SIGTERM become a flag inside the block; the old handlers come back after it."""
+
+import os
+import signal
+import threading
+
+import pytest
+
+from services.training.stop_signal import graceful_stop
+
+
+def test_the_first_signal_is_only_a_flag_and_the_handlers_come_back():
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    with graceful_stop() as stop_requested:
+        assert stop_requested() is None
+        os.kill(os.getpid(), signal.SIGTERM)   # delivered to the main thread before kill returns here
+        assert stop_requested() == "SIGTERM"
+        os.kill(os.getpid(), signal.SIGTERM)   # already stopping: nothing more
+        assert stop_requested() == "SIGTERM"
+    assert {sig: signal.getsignal(sig) for sig in before} == before
+
+
+def test_a_second_ctrl_c_stops_at_once():
+    with pytest.raises(KeyboardInterrupt):
+        with graceful_stop() as stop_requested:
+            os.kill(os.getpid(), signal.SIGINT)
+            assert stop_requested() == "SIGINT"
+            os.kill(os.getpid(), signal.SIGINT)
+            pytest.fail("the second SIGINT did not interrupt")
+
+
+def test_outside_the_main_thread_nothing_is_installed():
+    seen = {}
+
+    def worker():
+        with graceful_stop() as stop_requested:
+            seen["handler"] = signal.getsignal(signal.SIGTERM)
+            seen["requested"] = stop_requested()
+
+    before = signal.getsignal(signal.SIGTERM)
+    thread = threading.Thread(target=worker)
+    thread.start()
+    thread.join()
+    assert seen == {"handler": before, "requested": None}
