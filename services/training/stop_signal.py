@@ -7,7 +7,8 @@ Inside the block the first SIGINT (Ctrl-C) or SIGTERM (`kill`, a parent's clean-
 `stop_requested()` then returns the signal's name ("SIGINT"), and the loop saves a checkpoint at the
 step it just finished and returns. A second SIGINT raises KeyboardInterrupt at once (the way out when a
 step takes too long to wait for); a SIGTERM after the first signal changes nothing (already stopping).
-The previous handlers come back when the block ends.
+The previous handlers come back when the block ends; a signal the process ignores (SIG_IGN, e.g. SIGINT
+of a job started in the background) stays ignored.
 
 Why: the default handlers end a run mid-step, so a rerun resumed from its last periodic checkpoint —
 up to `checkpoint_every` steps back (100–200 steps, 10–25 minutes of a small-preset flow stage on one
@@ -45,7 +46,10 @@ def graceful_stop() -> Iterator[Callable[[], str | None]]:
         if not requested:
             requested.append(signal.Signals(signum).name)
 
-    previous = {sig: signal.signal(sig, handle) for sig in STOP_SIGNALS}
+    # A signal the process was told to ignore stays ignored: a run started in the background by a
+    # non-interactive shell, or under nohup, inherits SIGINT ignored, and its starter meant it.
+    previous = {sig: signal.signal(sig, handle) for sig in STOP_SIGNALS
+                if signal.getsignal(sig) is not signal.SIG_IGN}
     try:
         yield lambda: requested[0] if requested else None
     finally:
