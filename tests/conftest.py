@@ -26,3 +26,16 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture(autouse=True)
+def _torch_threads_restored():
+    """Whatever a test sets torch's thread count to (`n3dmap train` in-process gives itself every usable
+    CPU) is undone after it: the suite runs two pytest processes on one thread each (scripts/test.sh), and a
+    test left on two threads would make every later test in its process contend with the other process."""
+    import torch
+
+    before = torch.get_num_threads()
+    yield
+    if torch.get_num_threads() != before:
+        torch.set_num_threads(before)

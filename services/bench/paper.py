@@ -44,6 +44,7 @@ import torch
 from core.device import resolve_device
 from services.bench.plan import BenchConfig, BenchConfigError
 from services.bench.seed_stages import seed_stages
+from services.bench.seed_worker import STOPPED_EXIT
 from services.bench.stages import StageRunner, journal_size, stages_ran_since, write_json
 from services.bench.stopping import MARKER as TRAIN_MARKER
 from services.threads import ThreadPlan, plan_threads
@@ -149,6 +150,10 @@ def _run_seed_workers(out: Path, config: BenchConfig, plan: ThreadPlan, log: Cal
                     del running[seed]
                     if proc.returncode == 0:
                         log(f"[bench] seed {seed}: worker done")
+                    elif proc.returncode == STOPPED_EXIT:
+                        failed.append(f"seed {seed} (stopped by a signal: {_last_line(log_path)}; rerun the same "
+                                      f"command to resume it)")
+                        log(f"[bench] seed {seed}: worker stopped by a signal (a rerun resumes it)")
                     else:
                         failed.append(f"seed {seed} (exit {proc.returncode}; last line: {_last_line(log_path)}; "
                                       f"log {log_path})")

@@ -40,6 +40,13 @@ def exit_with_parent(parent: int | None = None, poll_s: float = 2.0) -> threadin
     return thread
 
 
+STOPPED_EXIT = 130  # stopped by SIGINT / SIGTERM: nothing failed, a rerun resumes (services.bench.paper reads it)
+
+
+def _raise_keyboard_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m services.bench.seed_worker", description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="the benchmark's REPORT_DIR")
@@ -52,6 +59,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--threads must be >= 1, got {args.threads}")
 
     exit_with_parent(args.parent_pid)
+    # SIGTERM outside a training stage (an evaluation, a data stage) ends the worker as Ctrl-C would, with
+    # the same line and exit status; inside one, graceful_stop takes it over and stops between two steps.
+    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
     import torch
 
     from core.errors import N3dmapError
@@ -65,8 +75,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: seed {args.seed}: {e}", file=sys.stderr, flush=True)
         return 2
     except KeyboardInterrupt as e:  # SIGINT / SIGTERM: a training stage stops between steps, checkpoint saved
-        print(f"[bench] seed {args.seed}: stopped ({e or 'interrupted'}); a rerun resumes it", flush=True)
-        return 130
+        print(f"[bench] seed {args.seed}: stopped ({str(e) or 'interrupted'}); a rerun resumes it", flush=True)
+        return STOPPED_EXIT
     return 0
 
 

@@ -47,6 +47,9 @@ class CheckpointState:
     step: int
     config: dict
     metrics: dict
+    # (epoch, batches of that epoch already trained): where the data stream stood, written only by a run
+    # stopped by a signal (loop.py), so that its resume reads exactly the batches the run would have read
+    data_position: tuple[int, int] | None = None
 
 
 def checkpoint_dir_name(step: int) -> str:
@@ -54,9 +57,10 @@ def checkpoint_dir_name(step: int) -> str:
 
 
 def save_checkpoint(directory: str | Path, *, task: torch.nn.Module, optimizer: torch.optim.Optimizer,
-                    step: int, config: dict, metrics: dict, average: WeightAverage | None = None) -> Path:
-    """Write the task, optimizer, step and config (and the weight average, if any) into `directory`
-    (created if missing)."""
+                    step: int, config: dict, metrics: dict, average: WeightAverage | None = None,
+                    data_position: tuple[int, int] | None = None) -> Path:
+    """Write the task, optimizer, step and config (and the weight average, if any; the data position, if
+    given: CheckpointState) into `directory` (created if missing)."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     save_file(_cpu_tensors(task.state_dict()), str(directory / TASK_FILE))
@@ -64,6 +68,8 @@ def save_checkpoint(directory: str | Path, *, task: torch.nn.Module, optimizer: 
         save_file(_cpu_tensors(average.state_dict()), str(directory / AVERAGE_FILE))
     torch.save(optimizer.state_dict(), directory / OPTIMIZER_FILE)
     state = {"step": int(step), "config": config, "metrics": _json_safe(metrics)}
+    if data_position is not None:
+        state["data_position"] = [int(v) for v in data_position]
     (directory / STATE_FILE).write_text(json.dumps(state, indent=1, sort_keys=True))
     return directory
 
@@ -73,8 +79,10 @@ def read_checkpoint_state(directory: str | Path) -> CheckpointState:
     path = Path(directory) / STATE_FILE
     try:
         state = json.loads(path.read_text())
+        position = state.get("data_position")
         return CheckpointState(step=int(state["step"]), config=dict(state["config"]),
-                               metrics=dict(state.get("metrics", {})))
+                               metrics=dict(state.get("metrics", {})),
+                               data_position=None if position is None else (int(position[0]), int(position[1])))
     except FileNotFoundError:
         raise CheckpointError(f"checkpoint {directory}: missing {STATE_FILE}") from None
     except (ValueError, KeyError, TypeError) as e:

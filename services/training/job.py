@@ -20,8 +20,10 @@ from __future__ import annotations
 import os
 import subprocess
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import torch
 
@@ -35,7 +37,7 @@ from services.training.progress import MetricsTail
 from services.training.loop import (
     CORE_TASKS, LoopOutcome, TaskSpec, TrainingError, TrainingInterrupted, train_loop,
 )
-from services.training.stop_signal import graceful_stop
+from services.training.stop_signal import graceful_stop, never
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
@@ -71,23 +73,32 @@ def run_training(config: TrainJobConfig, *, spec: TaskSpec = CORE_TASKS) -> RunS
     manifest = check_dataset(config)
     config.run_path.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    done = _finished_checkpoint(config)
-    if done is not None:  # rerun of a complete run: nothing to train, export again
-        checkpoint_dir, state = done
-        outcome = LoopOutcome(status="finished", step=state.step, start_step=state.step,
-                              last_metrics=state.metrics)
-    else:
-        _check_same_mode(config)
-        outcome, checkpoint_dir = _run_in_process(config, spec) if config.workers == 0 else _run_on_ray(config)
-    if outcome.status == "interrupted":
-        raise TrainingInterrupted(outcome.message)
-    if outcome.status != "finished":
-        raise TrainingError(outcome.message)
-    if checkpoint_dir is None:  # nothing trained this time (already at --steps): use the newest
-        checkpoint_dir = latest_checkpoint_dir(config)
-    if checkpoint_dir is None:
-        raise TrainingError(f"run {config.run_dir} finished but left no checkpoint")
-    bundle_dir = export_bundle(config, checkpoint_dir, outcome=outcome, manifest=manifest, spec=spec)
+    # In-process: the first Ctrl-C / SIGTERM stops the loop between two steps (stop_signal.py); one that
+    # comes during the last step, the final checkpoint or the export still stops the caller once the
+    # bundle is written, rather than being lost when the handlers are restored.
+    with graceful_stop() if config.workers == 0 else nullcontext(never) as stop_requested:
+        done = _finished_checkpoint(config)
+        if done is not None:  # rerun of a complete run: nothing to train, export again
+            checkpoint_dir, state = done
+            outcome = LoopOutcome(status="finished", step=state.step, start_step=state.step,
+                                  last_metrics=state.metrics)
+        else:
+            _check_same_mode(config)
+            outcome, checkpoint_dir = (_run_in_process(config, spec, stop_requested) if config.workers == 0
+                                       else _run_on_ray(config))
+        if outcome.status == "interrupted":
+            raise TrainingInterrupted(outcome.message)
+        if outcome.status != "finished":
+            raise TrainingError(outcome.message)
+        if checkpoint_dir is None:  # nothing trained this time (already at --steps): use the newest
+            checkpoint_dir = latest_checkpoint_dir(config)
+        if checkpoint_dir is None:
+            raise TrainingError(f"run {config.run_dir} finished but left no checkpoint")
+        bundle_dir = export_bundle(config, checkpoint_dir, outcome=outcome, manifest=manifest, spec=spec)
+        late = stop_requested()
+    if late is not None:
+        raise TrainingInterrupted(f"stopped by {late} as the run ended: it finished (step {outcome.step} of "
+                                  f"{config.steps}) and its bundle is exported to {bundle_dir}")
     return RunSummary(run_dir=config.run_path, bundle_dir=bundle_dir, checkpoint_dir=Path(checkpoint_dir),
                       outcome=outcome, seconds=time.monotonic() - started)
 
@@ -117,12 +128,12 @@ def _check_same_mode(config: TrainJobConfig) -> None:
 
 # ----------------------------------------------------------------------------- in-process
 
-def _run_in_process(config: TrainJobConfig, spec: TaskSpec) -> tuple[LoopOutcome, Path | None]:
+def _run_in_process(config: TrainJobConfig, spec: TaskSpec,
+                    stop_requested: Callable[[], str | None]) -> tuple[LoopOutcome, Path | None]:
     from services.training.sessions import LocalSession
 
     session = LocalSession(config)
-    with graceful_stop() as stop_requested:  # Ctrl-C / SIGTERM: stop between steps, checkpoint saved
-        outcome = train_loop(config, session, spec, stop_requested=stop_requested)
+    outcome = train_loop(config, session, spec, stop_requested=stop_requested)
     return outcome, session.store.latest()
 
 

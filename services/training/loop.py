@@ -18,8 +18,10 @@ Guarantees:
   checkpoint of that step, so the newest checkpoint is the last good one; the loop returns a
   `LoopOutcome` with status "non_finite" and a one-line message.
 - in-process runs only: once `stop_requested()` names a signal (services/training/stop_signal.py: the
-  first Ctrl-C or SIGTERM), the loop saves a checkpoint at the step it just finished (unless that step's
-  is saved already) and returns status "interrupted"; a rerun resumes at that step.
+  first Ctrl-C or SIGTERM), the loop saves a checkpoint at the step it just finished, with the data
+  stream's position (epoch, batches of it done), and returns status "interrupted"; a rerun resumes at
+  that step and batch, so a stopped and resumed run trains exactly as one never stopped. (A resume from a
+  periodic checkpoint starts a fresh epoch, numbered by its step.)
 """
 
 from __future__ import annotations
@@ -99,8 +101,9 @@ class TrainSession(Protocol):
     device: torch.device
     progress_stream: object  # where rank 0 prints progress lines (None: only metrics.jsonl)
 
-    def epoch_batches(self, epoch: int):
-        """Yield lists of `batch_size` records (dicts of numpy arrays) for this worker's share."""
+    def epoch_batches(self, epoch: int, skip: int = 0):
+        """Yield lists of `batch_size` records (dicts of numpy arrays) for this worker's share, from the
+        `skip`-th batch of the epoch on (in-process only: a resume after a signal)."""
 
     def latest_checkpoint(self):
         """Context manager yielding the newest checkpoint directory of the run, or None."""
@@ -207,6 +210,7 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
     optimizer = torch.optim.Adam(trainable, lr=config.lr)
 
     start_step = 0
+    position = None
     average = None
     with session.latest_checkpoint() as ckpt_dir:
         if ckpt_dir is None and config.init_bundle:
@@ -216,7 +220,8 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
         if ckpt_dir is not None:
             state = read_checkpoint_state(ckpt_dir)
             check_same_run(state.config, config.identity(), ckpt_dir)
-            start_step = load_checkpoint(ckpt_dir, task=task, optimizer=optimizer, average=average).step
+            state = load_checkpoint(ckpt_dir, task=task, optimizer=optimizer, average=average)
+            start_step, position = state.step, state.data_position
 
     model = session.prepare_model(task)
     logger = None
@@ -233,11 +238,12 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
     last: dict[str, float] = {}
     # A resumed run starts at an epoch index of its own (the step it resumes from), so its shuffles differ
     # from the ones before the cut: a run trained in chunks (the benchmark's held-out stopping rule)
-    # would otherwise replay the first epochs' batch order at the start of every chunk.
-    epoch = start_step
+    # would otherwise replay the first epochs' batch order at the start of every chunk. A run stopped by a
+    # signal saved where its data stream stood instead, and goes on from there (skip: batches already done).
+    epoch, skip = position if position is not None else (start_step, 0)
     while step < config.steps:
-        batches_this_epoch = 0
-        for records in session.epoch_batches(epoch):
+        batches_this_epoch = skip
+        for records in session.epoch_batches(epoch, skip) if skip else session.epoch_batches(epoch):
             batches_this_epoch += 1
             torch.manual_seed(step_seed(config.seed, session.rank, step))  # draws by step, not by call (seeding.py)
             _set_train_mode(task, exported, config.freeze)
@@ -280,10 +286,9 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
             if step >= config.steps:
                 break
             why = stop_requested()
-            if why is not None:
-                if saved_step != step:
-                    _report_checkpoint(config, session, task, optimizer, step, values, average)
-                    saved_step = step
+            if why is not None:  # saved again with the data position, even where the step's checkpoint exists
+                _report_checkpoint(config, session, task, optimizer, step, values, average,
+                                   data_position=(epoch, batches_this_epoch))
                 done = step - start_step
                 mean = {k: v / done for k, v in zip(names or [], sums.tolist())}
                 return LoopOutcome(status="interrupted", step=step, start_step=start_step, last_metrics=last,
@@ -295,6 +300,7 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
                             f"per worker ({session.world_size} worker(s)); use a smaller "
                             f"--batch-size, fewer --workers or a bigger dataset")
         epoch += 1
+        skip = 0
 
     mean = {k: v / max(1, step - start_step) for k, v in zip(names or [], (sums.tolist() if sums is not None else []))}
     return LoopOutcome(status="finished", step=step, start_step=start_step, last_metrics=last,
@@ -310,12 +316,12 @@ def _stopped(step, start_step, saved_step, values, message, sums, names) -> Loop
                        message=message + last_good, last_metrics=values, mean_metrics=mean)
 
 
-def _report_checkpoint(config, session, task, optimizer, step, values, average) -> None:
+def _report_checkpoint(config, session, task, optimizer, step, values, average, data_position=None) -> None:
     staged = None
     if session.rank == 0:
         staged = session.staging_dir(step)
         save_checkpoint(staged, task=task, optimizer=optimizer, step=step, config=config.to_dict(),
-                        metrics=values, average=average)
+                        metrics=values, average=average, data_position=data_position)
     try:
         session.report({"step": step, **values}, step, staged)
     finally:

@@ -47,10 +47,11 @@ class LocalSession:
         self.device = resolve_device(config.device)
         self.store = LocalCheckpointStore(config.local_checkpoint_root, keep=config.keep_checkpoints)
 
-    def epoch_batches(self, epoch: int):
+    def epoch_batches(self, epoch: int, skip: int = 0):
+        """skip: batches of this epoch already trained (a resume of a run stopped by a signal)."""
         order = np.random.default_rng([self.config.seed, epoch]).permutation(len(self.dataset))
         size = self.config.batch_size
-        for start in range(0, len(order) - size + 1, size):  # drop the last partial batch
+        for start in range(skip * size, len(order) - size + 1, size):  # drop the last partial batch
             yield [self.dataset[int(i)] for i in order[start:start + size]]
 
     @contextlib.contextmanager

@@ -153,7 +153,11 @@ def test_ema_decay_exports_the_weight_average(tiny_train_data, tmp_path, capsys)
 def test_a_signal_stops_the_run_between_steps_with_its_checkpoint_and_a_rerun_resumes(tiny_train_data, tmp_path, sig):
     # a real `n3dmap train` process, as a user's Ctrl-C (SIGINT) or a scheduler's `kill` (SIGTERM) stops it
     run = tmp_path / "run"
-    command = [sys.executable, "-m", "services.cli.main", "train", "occupancy", "--data", str(tiny_train_data),
+    # the CLI with Python's own SIGINT handler, as at a terminal (this test may run where SIGINT is ignored,
+    # e.g. a suite started in the background, and a child would inherit that)
+    cli = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+           "from services.cli.main import main; sys.exit(main())")
+    command = [sys.executable, "-c", cli, "train", "occupancy", "--data", str(tiny_train_data),
                "--run-dir", str(run), "--workers", "0", "--device", "cpu", "--log-every", "1",
                "--batch-size", "2", "--checkpoint-every", "1000"]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
@@ -184,3 +188,39 @@ def test_a_signal_stops_the_run_between_steps_with_its_checkpoint_and_a_rerun_re
     assert f"resuming occupancy from step {stopped}" in done.stdout
     assert [r["step"] for r in read_metrics(run / "metrics.jsonl")] == list(range(1, stopped + 3))
     assert (run / "bundle" / "bundle.json").is_file()
+
+
+def test_a_signal_during_the_last_step_stops_the_caller_once_the_bundle_is_written(tiny_train_data, tmp_path):
+    # a signal that lands after the loop's last check (the last step, the final checkpoint, the export) must
+    # not be lost when the handlers are restored: the run finishes and exports, then the caller stops
+    import dataclasses
+
+    from services.training.config import TrainJobConfig
+    from services.training.job import run_training
+    from services.training.loop import CORE_TASKS, TrainingInterrupted
+
+    steps = 2
+
+    def build(config, device):
+        task = CORE_TASKS.build(config, device)
+        forward, calls = task.forward, []
+
+        def forward_that_signals_at_the_last_step(batch):
+            calls.append(1)
+            if len(calls) == steps:
+                os.kill(os.getpid(), signal.SIGTERM)
+            return forward(batch)
+
+        task.forward = forward_that_signals_at_the_last_step
+        return task
+
+    torch.set_num_threads(1)
+    run = tmp_path / "run"
+    config = TrainJobConfig(task="occupancy", data_dir=str(tiny_train_data), run_dir=str(run), preset="tiny",
+                            workers=0, steps=steps, batch_size=2, checkpoint_every=1000, log_every=1, device="cpu")
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(TrainingInterrupted, match=r"stopped by SIGTERM as the run ended: it finished \(step 2 of 2\)"):
+        run_training(config, spec=dataclasses.replace(CORE_TASKS, build=build))
+    assert signal.getsignal(signal.SIGTERM) is before
+    assert (run / "bundle" / "bundle.json").is_file()
+    assert [r["step"] for r in read_metrics(run / "metrics.jsonl")] == [1, 2]

@@ -190,12 +190,40 @@ def test_a_stop_request_saves_the_step_it_ends_on_and_a_rerun_resumes_there(tmp_
     assert outcome.status == "interrupted" and outcome.step == stop_at and len(calls) == stop_at
     assert "SIGTERM" in outcome.message and f"after step {stop_at} of 20" in outcome.message
     store = LocalSession(config, dataset=[]).store
-    # step 10 is a periodic checkpoint already: the stop does not write it twice
     assert [read_checkpoint_state(p).step for p in store.list()] == checkpoints
+    # batch 4 per step, 32 records: 8 batches an epoch; the stopped run is in epoch 0 (its first), at batch `stop_at`
+    # of it or in the next epoch (numbered 1)
+    assert read_checkpoint_state(store.latest()).data_position == divmod(stop_at, 8)
     assert math.isfinite(outcome.mean_metrics["loss"])
     again = _run(config, records)
     assert again.status == "finished" and again.start_step == stop_at and again.step == 20
     assert [r["step"] for r in read_metrics(config.metrics_path)] == list(range(1, 21))  # nothing repeated
+
+
+@pytest.mark.parametrize("stop_at", [3, 8, 13])
+def test_a_run_stopped_by_a_signal_and_resumed_trains_as_one_never_stopped(tmp_path, stop_at):
+    # the same batches in the same order, the same random draws, the same optimizer and weight-average
+    # state: the weights after 20 steps are bit for bit those of an uninterrupted run (stop_at 8 ends an epoch)
+    import torch
+    from safetensors.torch import load_file
+
+    records = toy_records(32)
+    whole_draws: list[float] = []
+    whole = _config(tmp_path / "whole", steps=20, checkpoint_every=5, ema_decay=0.9)
+    _run(whole, records, toy_spec(draws=whole_draws))
+    cut_draws: list[float] = []
+    cut = _config(tmp_path / "cut", steps=20, checkpoint_every=5, ema_decay=0.9)
+    first = train_loop(cut, LocalSession(cut, dataset=records), toy_spec(draws=cut_draws),
+                       stop_requested=_stop_after(stop_at, []))
+    assert first.status == "interrupted" and first.step == stop_at
+    _run(cut, records, toy_spec(draws=cut_draws))
+    assert cut_draws == whole_draws
+    losses = [[r["loss"] for r in read_metrics(c.metrics_path)] for c in (whole, cut)]
+    assert losses[0] == losses[1]
+    ends = [LocalSession(c, dataset=[]).store.latest() for c in (whole, cut)]
+    for name in ("task.safetensors", "average.safetensors"):
+        a, b = (load_file(str(d / name)) for d in ends)
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), name
 
 
 def test_a_stop_request_at_the_first_step_saves_it_and_at_the_last_step_the_run_just_finishes(tmp_path):
@@ -204,7 +232,7 @@ def test_a_stop_request_at_the_first_step_saves_it_and_at_the_last_step_the_run_
                          stop_requested=lambda: "SIGINT")
     assert outcome.status == "interrupted" and outcome.step == 1
     assert [read_checkpoint_state(p).step for p in LocalSession(config, dataset=[]).store.list()] == [1]
-    # resumed at 1, asked to stop at every step: it stops at 5 (a periodic checkpoint, not written twice) ...
+    # resumed at 1, asked to stop at its 4th step: it stops at 5 (a periodic checkpoint, saved with the position) ...
     outcome = train_loop(config, LocalSession(config, dataset=toy_records(32)), toy_spec(),
                          stop_requested=_stop_after(4, []))
     assert outcome.status == "interrupted" and (outcome.start_step, outcome.step) == (1, 5)

@@ -9,6 +9,15 @@ import pytest
 from services.training.stop_signal import graceful_stop
 
 
+@pytest.fixture(autouse=True)
+def sigint_as_at_a_terminal():
+    """Python's own SIGINT handler for the test (restored after): a suite started in the background by a
+    non-interactive shell inherits SIGINT ignored, which graceful_stop rightly leaves alone."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
 def test_the_first_signal_is_only_a_flag_and_the_handlers_come_back():
     before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     with graceful_stop() as stop_requested:
