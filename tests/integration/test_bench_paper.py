@@ -243,3 +243,40 @@ def test_occupancy_and_egomotion_stages_export_their_weight_average(bench_run):
         torch.testing.assert_close(value, average[f"{module}.{name}"])
     # the other stages keep none
     assert load_bundle(out / "work" / "seed0" / "pretrain_contrastive" / "selected").meta["provenance"]["ema_decay"] == 0.0
+
+
+def test_a_seed_worker_stopped_by_a_signal_is_reported_as_resumable_and_the_rerun_finishes(bench_run, tmp_path):
+    import os
+    import signal
+    import time
+
+    out, _ = bench_run
+    copy = tmp_path / "report"
+    shutil.copytree(out, copy)
+    cmd = [sys.executable, "-m", "services.cli.main", "bench", "paper", "--preset", "tiny", "--quick", "--seeds", "2",
+           "--parallel-seeds", "2", "--out", str(copy), "--device", "cpu", "--task-options", json.dumps(TASK_OPTIONS),
+           "--redo", "seed1/egomotion"]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    log = copy / "work" / "seed1" / "worker.log"
+    size = log.stat().st_size
+    try:
+        deadline = time.monotonic() + 120
+        while "[bench] seed1/egomotion: running" not in log.read_text()[size:]:
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+        pid = next(int(c) for c in children if "--seed\x001\x00" in Path(f"/proc/{c}/cmdline").read_text())
+        os.kill(pid, signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=180)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 2 and "Traceback" not in stderr, stderr[-2000:]
+    assert "seed 1 (stopped by a signal: [bench] seed 1: stopped (" in stderr
+    assert "rerun the same command to resume it" in stderr
+    assert "[bench] seed 1: worker stopped by a signal (a rerun resumes it)" in stdout
+    assert "Traceback" not in log.read_text()[size:]
+    rerun = _bench(copy)  # plain: resumes what the stopped worker left unfinished
+    assert "[bench] seed 1: worker done" in rerun.stdout and (copy / "report.md").is_file()
+    assert (copy / "work" / "seed1" / "egomotion" / "bundle" / "bundle.json").is_file()
