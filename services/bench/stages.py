@@ -83,13 +83,23 @@ class StageRunner:
             self._append(name, seconds, "skipped")
             return stage_dir
         stage_dir.mkdir(parents=True, exist_ok=True)
-        self.log(f"[bench] {name}: running")
+        # A stage stopped part-way (Ctrl-C, SIGTERM, an error) keeps the time it ran in PARTIAL, and its
+        # resume adds it: the report's stage times are whole stages, not their last attempts. (A process
+        # killed outright writes nothing, so its attempt goes uncounted.)
+        partial_path = stage_dir / PARTIAL
+        earlier = _read_seconds(partial_path) if partial_path.exists() else 0.0
+        self.log(f"[bench] {name}: running" + (f" ({earlier:.1f} s in earlier attempts)" if earlier else ""))
         started = time.monotonic()
-        fn(stage_dir)
-        seconds = time.monotonic() - started
+        try:
+            fn(stage_dir)
+        except BaseException:
+            write_json(partial_path, {"stage": name, "seconds": earlier + time.monotonic() - started})
+            raise
+        seconds = earlier + time.monotonic() - started
         if not done.exists():
             raise RuntimeError(f"stage {name} finished without writing {done}")
         write_json(info_path, {"stage": name, "seconds": seconds})
+        partial_path.unlink(missing_ok=True)
         self.seconds[name] = seconds
         self.ran.append(name)
         self.log(f"[bench] {name}: {seconds:.1f} s")
@@ -103,6 +113,7 @@ class StageRunner:
 
 
 JOURNAL = "stages.jsonl"   # one line per stage and invocation: {stage, seconds, status ("ran"/"skipped"), time}
+PARTIAL = "stage.partial.json"   # in a stage's dir: {stage, seconds} its stopped attempts ran so far
 
 
 def journal_size(work: Path) -> int:

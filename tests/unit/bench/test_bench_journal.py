@@ -26,3 +26,31 @@ def test_stages_ran_since_lists_only_what_ran_after_the_offset(tmp_path):
     assert stages_ran_since(work, 0) == ["a", "b", "c"]
     lines = (work / JOURNAL).read_text().splitlines()
     assert [json.loads(l)["status"] for l in lines[:4]] == ["ran", "skipped", "ran", "ran"]
+
+
+def test_a_stage_stopped_part_way_reports_the_time_of_all_its_attempts(tmp_path, monkeypatch):
+    import time
+    from types import SimpleNamespace
+
+    import pytest
+
+    import services.bench.stages as stages
+
+    clock = iter([100.0, 130.0, 200.0, 205.0])  # attempt 1 runs 30 s and is stopped; attempt 2 runs 5 s
+    monkeypatch.setattr(stages, "time", SimpleNamespace(monotonic=lambda: next(clock), strftime=time.strftime))
+    lines: list[str] = []
+    work = tmp_path / "work"
+
+    def stopped(stage_dir):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        StageRunner(work, log=lines.append).run("a", "done", stopped)
+    assert json.loads((work / "a" / stages.PARTIAL).read_text())["seconds"] == 30.0
+    assert not (work / "a" / "stage.json").exists() and stages_ran_since(work, 0) == []
+    runner = StageRunner(work, log=lines.append)
+    runner.run("a", "done", _done)
+    assert lines[-2:] == ["[bench] a: running (30.0 s in earlier attempts)", "[bench] a: 35.0 s"]
+    assert json.loads((work / "a" / "stage.json").read_text())["seconds"] == runner.seconds["a"] == 35.0
+    assert not (work / "a" / stages.PARTIAL).exists()
+    assert [json.loads(l)["seconds"] for l in (work / JOURNAL).read_text().splitlines()] == [35.0]
