@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -53,6 +54,11 @@ DATA_MARKER = "manifest.json"
 # How long an interrupted run waits for its seed workers to save and exit before killing them: a
 # small-preset flow step takes up to ~15 s on one time-sliced thread; a worker mid-evaluation stops at once.
 WORKER_STOP_GRACE_S = 120.0
+# A worker's exit statuses that mean "stopped by a signal, nothing failed": its own 130, or death by SIGINT /
+# SIGTERM (before its handlers are in place; and once, in a test, -2 after the worker had caught the
+# KeyboardInterrupt and printed its stop line: CPython ends a process by SIGINT when it counted a
+# KeyboardInterrupt as unhandled, which we did not trace further).
+STOPPED_EXITS = (STOPPED_EXIT, -signal.SIGINT, -signal.SIGTERM)
 
 
 def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds: int = 1,
@@ -150,7 +156,7 @@ def _run_seed_workers(out: Path, config: BenchConfig, plan: ThreadPlan, log: Cal
                     del running[seed]
                     if proc.returncode == 0:
                         log(f"[bench] seed {seed}: worker done")
-                    elif proc.returncode == STOPPED_EXIT:
+                    elif proc.returncode in STOPPED_EXITS:
                         failed.append(f"seed {seed} (stopped by a signal: {_last_line(log_path)}; rerun the same "
                                       f"command to resume it)")
                         log(f"[bench] seed {seed}: worker stopped by a signal (a rerun resumes it)")

@@ -46,11 +46,15 @@ def graceful_stop() -> Iterator[Callable[[], str | None]]:
         if not requested:
             requested.append(signal.Signals(signum).name)
 
-    # A signal the process was told to ignore stays ignored: a run started in the background by a
-    # non-interactive shell, or under nohup, inherits SIGINT ignored, and its starter meant it.
-    previous = {sig: signal.signal(sig, handle) for sig in STOP_SIGNALS
-                if signal.getsignal(sig) is not signal.SIG_IGN}
+    previous = {}
     try:
+        # One at a time, each restored on the way out even if a signal's old handler raises while the
+        # next is installed. A signal the process was told to ignore stays ignored: a run started in the
+        # background by a non-interactive shell, or under nohup, inherits SIGINT ignored, and its starter
+        # meant it.
+        for sig in STOP_SIGNALS:
+            if signal.getsignal(sig) is not signal.SIG_IGN:
+                previous[sig] = signal.signal(sig, handle)
         yield lambda: requested[0] if requested else None
     finally:
         for sig, handler in previous.items():

@@ -65,3 +65,22 @@ def test_an_ignored_signal_stays_ignored():
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, before)
+
+
+def test_a_signal_while_the_handlers_go_in_leaves_none_of_them_behind(monkeypatch):
+    # the old SIGTERM handler raises as graceful_stop installs its own (a signal that lands in between):
+    # the SIGINT handler it had already installed must not stay
+    real_signal = signal.signal
+    before = signal.getsignal(signal.SIGINT)
+
+    def install(sig, handler):
+        if sig == signal.SIGTERM and handler not in (signal.SIG_DFL, signal.SIG_IGN) and callable(handler):
+            if getattr(handler, "__name__", "") == "handle":
+                raise KeyboardInterrupt  # as the old handler would, run by a pending SIGTERM
+        return real_signal(sig, handler)
+
+    monkeypatch.setattr(signal, "signal", install)
+    with pytest.raises(KeyboardInterrupt):
+        with graceful_stop():
+            pytest.fail("the block ran")
+    assert signal.getsignal(signal.SIGINT) is before
