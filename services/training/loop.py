@@ -243,7 +243,7 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
     epoch, skip = position if position is not None else (start_step, 0)
     while step < config.steps:
         batches_this_epoch = skip
-        for records in session.epoch_batches(epoch, skip) if skip else session.epoch_batches(epoch):
+        for records in session.epoch_batches(epoch, skip):
             batches_this_epoch += 1
             torch.manual_seed(step_seed(config.seed, session.rank, step))  # draws by step, not by call (seeding.py)
             _set_train_mode(task, exported, config.freeze)
@@ -289,10 +289,8 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
             if why is not None:  # saved again with the data position, even where the step's checkpoint exists
                 _report_checkpoint(config, session, task, optimizer, step, values, average,
                                    data_position=(epoch, batches_this_epoch))
-                done = step - start_step
-                mean = {k: v / done for k, v in zip(names or [], sums.tolist())}
                 return LoopOutcome(status="interrupted", step=step, start_step=start_step, last_metrics=last,
-                                   mean_metrics=mean, message=f"stopped by {why} after step {step} of "
+                                   mean_metrics=_mean_metrics(names, sums, step - start_step), message=f"stopped by {why} after step {step} of "
                                    f"{config.steps}; its checkpoint is saved in {config.run_dir}: rerun the same "
                                    f"command to resume there")
         if batches_this_epoch == 0:
@@ -302,18 +300,23 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
         epoch += 1
         skip = 0
 
-    mean = {k: v / max(1, step - start_step) for k, v in zip(names or [], (sums.tolist() if sums is not None else []))}
     return LoopOutcome(status="finished", step=step, start_step=start_step, last_metrics=last,
-                       mean_metrics=mean)
+                       mean_metrics=_mean_metrics(names, sums, step - start_step))
+
+
+def _mean_metrics(names: list[str] | None, sums: torch.Tensor | None, steps: int) -> dict[str, float]:
+    """Each metric's mean over the `steps` steps of this attempt ({} when none ran)."""
+    if sums is None or steps <= 0:
+        return {}
+    return {k: v / steps for k, v in zip(names or [], sums.tolist())}
 
 
 def _stopped(step, start_step, saved_step, values, message, sums, names) -> LoopOutcome:
-    done = step - start_step
-    mean = ({k: v / done for k, v in zip(names, sums.tolist())} if sums is not None and done else {})
     last_good = (f"; run stopped, its last good checkpoint is step {saved_step}" if saved_step
                  else "; run stopped before its first checkpoint")
     return LoopOutcome(status="non_finite", step=step, start_step=start_step,
-                       message=message + last_good, last_metrics=values, mean_metrics=mean)
+                       message=message + last_good, last_metrics=values,
+                       mean_metrics=_mean_metrics(names, sums, step - start_step))
 
 
 def _report_checkpoint(config, session, task, optimizer, step, values, average, data_position=None) -> None:

@@ -94,8 +94,11 @@ class RaySession:
         self._shard = ray.train.get_dataset_shard("train")
         self.progress_stream = None  # the driver prints progress from metrics.jsonl
 
-    def epoch_batches(self, epoch: int):
+    def epoch_batches(self, epoch: int, skip: int = 0):
         from services.training.data import decode_rows
+
+        if skip:  # only a signal-stopped in-process run saves a data position, and runs resume in their own mode
+            raise ValueError(f"a Ray Train worker cannot skip into an epoch (skip={skip})")
 
         for batch in self._shard.iter_batches(
                 batch_size=self.config.batch_size, batch_format="numpy", drop_last=True,
