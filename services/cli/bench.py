@@ -1,6 +1,9 @@
-"""`n3dmap bench paper`: generate data, pretrain, train the downstream modules, evaluate, and report.
+"""`n3dmap bench paper`: generate data, pretrain, train the downstream modules, evaluate, and report;
+`n3dmap bench carry save|restore`: carry a benchmark's work to another machine (services/bench/carry.py).
 
     n3dmap bench paper --preset small --out REPORT_DIR [--seeds 3] [--parallel-seeds N] [--quick]
+    n3dmap bench carry save --out REPORT_DIR --to CARRY_DIR
+    n3dmap bench carry restore --from CARRY_DIR --out REPORT_DIR
 
 Everything lands in REPORT_DIR: report.md, metrics.json and PNG plots at the top, every stage's
 dataset, run and metrics under REPORT_DIR/work/. Rerunning the same command continues a cut-off run
@@ -102,6 +105,38 @@ def register(subparsers) -> None:
                         "their output: what a code change needs, since stages are keyed by their settings, not "
                         "the code")
     p.set_defaults(func=run)
+
+    carry = kinds.add_parser(
+        "carry", help="carry a benchmark's work to another machine: save what cannot be remade, restore it",
+        description="Save the part of a `bench paper` work directory that cannot be remade (trained stages' "
+                    "bundles and logs, evaluations, the newest checkpoint of a stage under way) into a folder "
+                    "git can hold, or rebuild a work directory from such a folder on another machine (the "
+                    "datasets regenerated and checked against the saved checksums). Stop `bench paper` before "
+                    "saving. services/bench/carry.py says what is left out and why.")
+    actions = carry.add_subparsers(dest="carry_action", metavar="ACTION", required=True)
+    save = actions.add_parser("save", help="write REPORT_DIR/work's irreproducible part into CARRY_DIR (replaced)")
+    save.add_argument("--out", required=True, metavar="REPORT_DIR", help="the --out of the `bench paper` run")
+    save.add_argument("--to", required=True, metavar="CARRY_DIR", help="folder to write (an earlier carry there is replaced)")
+    save.set_defaults(func=run_carry_save)
+    restore = actions.add_parser("restore", help="rebuild REPORT_DIR/work from CARRY_DIR, then rerun `bench paper`")
+    restore.add_argument("--from", dest="source", required=True, metavar="CARRY_DIR", help="a folder written by `bench carry save`")
+    restore.add_argument("--out", required=True, metavar="REPORT_DIR",
+                         help="the --out the `bench paper` command will be given (its work/ must not exist yet)")
+    restore.set_defaults(func=run_carry_restore)
+
+
+def run_carry_save(args: argparse.Namespace) -> int:
+    from services.bench.carry import save_carry
+
+    save_carry(args.out, args.to)
+    return 0
+
+
+def run_carry_restore(args: argparse.Namespace) -> int:
+    from services.bench.carry import restore_carry
+
+    restore_carry(args.source, args.out)
+    return 0
 
 
 def _variant(text: str) -> tuple[str, str]:

@@ -280,3 +280,57 @@ def test_a_seed_worker_stopped_by_a_signal_is_reported_as_resumable_and_the_reru
     rerun = _bench(copy)  # plain: resumes what the stopped worker left unfinished
     assert "[bench] seed 1: worker done" in rerun.stdout and (copy / "report.md").is_file()
     assert (copy / "work" / "seed1" / "egomotion" / "bundle" / "bundle.json").is_file()
+
+
+def test_a_carried_run_restored_elsewhere_continues_where_it_stopped(bench_run, tmp_path):
+    """`bench carry save` on one work dir (seed 1's egomotion as if stopped part-way), `bench carry restore` into
+    a new --out, then the same `bench paper` command: only the stopped stage runs, from its carried checkpoint
+    (the same weights as the original run's), and the report's numbers are the original's."""
+    from safetensors.torch import load_file
+
+    out, _ = bench_run
+    source = tmp_path / "report"
+    shutil.copytree(out, source)
+    stopped = source / "work" / "seed1" / "egomotion"
+    for name in ("stopping.json", "stage.json"):
+        (stopped / name).unlink()
+    shutil.rmtree(stopped / "selected")
+
+    def cli(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "services.cli.main", "bench", "carry", *args], cwd=ROOT,
+                              capture_output=True, text=True, timeout=300)
+
+    carry = tmp_path / "carry"
+    saved = cli("save", "--out", str(source), "--to", str(carry))
+    assert saved.returncode == 0, saved.stderr[-2000:]
+    files = set(json.loads((carry / "carry.json").read_text())["files"])
+    assert not any(f.startswith("data/") or "/labelled_data/" in f or "/bundle/" in f for f in files)
+    assert "seed0/egomotion/stopping.json" in files and not any(f.startswith("seed0/egomotion/checkpoints/") for f in files)
+    newest = sorted((stopped / "checkpoints").glob("checkpoint_*"))[-1].relative_to(source / "work").as_posix()
+    assert {f for f in files if f.startswith("seed1/egomotion/checkpoints/")} == {
+        f"{newest}/{p.name}" for p in (source / "work" / newest).iterdir()}
+
+    restored = tmp_path / "restored"
+    done = cli("restore", "--from", str(carry), "--out", str(restored))
+    assert done.returncode == 0, done.stderr[-2000:]
+    again = cli("restore", "--from", str(carry), "--out", str(restored))
+    assert again.returncode == 2 and "already holds a benchmark" in again.stderr and "Traceback" not in again.stderr
+
+    journal = restored / "work" / "stages.jsonl"
+    before = len(journal.read_text().splitlines())
+    worker_log = restored / "work" / "seed1" / "worker.log"
+    log_size = worker_log.stat().st_size
+    _bench(restored)
+    appended = [json.loads(l) for l in journal.read_text().splitlines()[before:]]
+    assert {e["stage"] for e in appended if e["status"] == "ran"} == {"seed1/egomotion"}
+    # it trained no step: its carried checkpoint had reached the stage's last one, so it was exported as it is
+    continued_log = worker_log.read_text()[log_size:]
+    assert "[bench] seed1/egomotion: running" in continued_log
+    assert not re.search(r"^step +\d+/", continued_log, flags=re.M), continued_log[-2000:]
+    mine, theirs = (load_file(str(d / "work" / "seed1" / "egomotion" / "selected" / "weights.safetensors"))
+                    for d in (restored, out))
+    assert mine.keys() == theirs.keys() and all(torch.equal(mine[k], theirs[k]) for k in mine)
+    original = json.loads((out / "metrics.json").read_text())["metrics"]
+    continued = json.loads((restored / "metrics.json").read_text())["metrics"]
+    for key in ("detection", "retrieval", "flow", "moving", "occupancy", "egomotion", "claims", "per_seed"):
+        assert continued[key] == original[key], key

@@ -1,0 +1,227 @@
+"""Carry a `bench paper` run from one machine to another: the part of its work that cannot be remade, in a
+folder that git can hold.
+
+The small preset's benchmark trains for about fifteen hours of a 2-core machine, over several sessions, and
+a machine can be replaced between two of them (three regenerations of the small report were lost that way,
+their work directories with them). `save_carry(OUT, CARRY)` writes into CARRY what a rerun needs and cannot
+regenerate; on another machine `restore_carry(CARRY, OUT)` rebuilds OUT/work from it, after which the same
+`n3dmap bench paper --out OUT ...` command continues where the saved run stopped.
+
+What is carried: OUT/work/plan.json, OUT/work/stages.jsonl and every file under OUT/work/seed<s>/, except
+- the datasets (OUT/work/data/*): the restore regenerates them from the plan (the generator is deterministic:
+  the same code and torch write the same bytes) and checks each shard's sha256 against the carried manifests,
+  so a resumed stage never trains on other bytes than its first part did;
+- the label subsets (RUN_DIR/labelled_data/): copies of training records, remade by the stage that reads them;
+- a training run's exported RUN_DIR/bundle/: remade by its next export (later stages read RUN_DIR/selected/);
+- checkpoints: none of a finished training stage (its output is RUN_DIR/selected/), the newest one of a stage
+  under way (a rerun resumes there; older ones are never read);
+- temporaries (*.tmp, selected.old).
+
+CARRY/carry.json lists every carried file with its size and sha256 (the restore checks each) and the data
+manifests. Save a run only while nothing writes to it: stop `bench paper` first (SIGTERM or Ctrl-C: its
+stages save a checkpoint at the step they are in).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+from core.errors import N3dmapError
+from services.bench.stages import write_json
+
+CARRY_FORMAT = "n3dmap-bench-carry"
+CARRY_VERSION = 1
+CARRY_MANIFEST = "carry.json"
+DATA_STAGE_ROOT = "data"
+TOP_FILES = ("plan.json", "stages.jsonl")
+# Directories of a training run that are never carried (see the module docstring).
+REMADE_DIRS = ("labelled_data", "bundle")
+CHECKPOINTS = "checkpoints"   # TrainJobConfig.local_checkpoint_root: the in-process loop's
+RAY_STORAGE = "ray_train"     # TrainJobConfig.ray_storage_name: Ray Train's (its own layout; not carried)
+# What marks a directory as a training run's (a stage's RUN_DIR), from the moment the stage starts.
+RUN_DIR_NAMES = frozenset({"metrics.jsonl", "stopping.json", "stopping.partial.json", "selected", CHECKPOINTS,
+                           RAY_STORAGE, *REMADE_DIRS})
+TEMPORARY_SUFFIXES = (".tmp", ".old")
+TRAINING_MARKER = "stopping.json"                 # services.bench.stopping.MARKER: the stage is finished
+
+
+class CarryError(N3dmapError):
+    """A carry folder or a benchmark work directory cannot be saved or restored as asked."""
+
+
+def save_carry(out_dir: str | Path, carry_dir: str | Path, *, log: Callable[[str], None] = print) -> dict:
+    """Write what OUT/work cannot remake into CARRY_DIR (replacing an earlier carry there); returns carry.json."""
+    work = Path(out_dir) / "work"
+    carry = Path(carry_dir)
+    if not (work / "plan.json").is_file():
+        raise CarryError(f"{out_dir}: no benchmark here (no work/plan.json); give the --out of `bench paper`")
+    data = {}
+    for manifest_path in sorted((work / DATA_STAGE_ROOT).glob("*/manifest.json")):
+        manifest = json.loads(manifest_path.read_text())
+        data[manifest_path.parent.name] = manifest
+    files = sorted(carried_files(work))
+    tmp = carry.with_name(carry.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    listing = {}
+    for rel in files:
+        target = tmp / "work" / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(work / rel, target)
+        listing[rel] = {"bytes": target.stat().st_size, "sha256": _sha256(target)}
+    manifest = {"format": CARRY_FORMAT, "version": CARRY_VERSION, "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+                "data": data, "files": listing}
+    write_json(tmp / CARRY_MANIFEST, manifest)
+    readme = carry / "README.md"
+    if readme.is_file():   # a hand-written note beside the carry (what run it is, how to continue it) stays
+        shutil.copyfile(readme, tmp / "README.md")
+    old = carry.with_name(carry.name + ".old")
+    shutil.rmtree(old, ignore_errors=True)
+    if carry.exists():
+        os.replace(carry, old)
+    os.replace(tmp, carry)
+    shutil.rmtree(old, ignore_errors=True)
+    total = sum(f["bytes"] for f in listing.values())
+    log(f"[carry] saved {len(listing)} files ({total / 1e6:.1f} MB) of {work} to {carry}")
+    return manifest
+
+
+def carried_files(work: Path) -> Iterator[str]:
+    """Paths (relative to `work`, POSIX) of the files a carry holds (module docstring)."""
+    for name in TOP_FILES:
+        if (work / name).is_file():
+            yield name
+    for seed_dir in sorted(p for p in work.iterdir() if p.is_dir() and p.name != DATA_STAGE_ROOT):
+        yield from _walk(work, seed_dir)
+
+
+def _walk(work: Path, directory: Path) -> Iterator[str]:
+    names = set(os.listdir(directory))
+    run_dir = bool(names & RUN_DIR_NAMES)
+    finished = TRAINING_MARKER in names
+    for name in sorted(names):
+        path = directory / name
+        if name.endswith(TEMPORARY_SUFFIXES):
+            continue
+        if path.is_dir():
+            if run_dir and name in REMADE_DIRS:
+                continue
+            if run_dir and name == RAY_STORAGE:
+                if not finished and _newest_checkpoint(path) is not None:
+                    raise CarryError(f"{directory} is a stage under way on Ray Train (bench paper --workers N), "
+                                     "whose checkpoints are not carried; carry it once that stage has finished, "
+                                     "or run the benchmark in-process (--workers 0)")
+                continue
+            if run_dir and name == CHECKPOINTS:
+                newest = None if finished else _newest_checkpoint(path)
+                if newest is not None:
+                    yield from _walk(work, newest)
+                continue
+            yield from _walk(work, path)
+        elif path.is_file():
+            yield path.relative_to(work).as_posix()
+
+
+def _newest_checkpoint(root: Path) -> Path | None:
+    """The complete checkpoint (one with its state.json) of the highest step under `root`, at any depth (Ray
+    Train nests its checkpoints one level further than the in-process loop)."""
+    best, best_step = None, -1
+    for state in root.rglob("state.json"):
+        try:
+            step = int(json.loads(state.read_text())["step"])
+        except (OSError, ValueError, KeyError, TypeError):
+            continue   # a checkpoint cut off while it was written: never the one a rerun resumes from
+        if step > best_step:
+            best, best_step = state.parent, step
+    return best
+
+
+def restore_carry(carry_dir: str | Path, out_dir: str | Path, *, log: Callable[[str], None] = print) -> dict:
+    """Rebuild OUT/work from CARRY_DIR (OUT/work must not exist yet), regenerating the datasets and checking
+    them and every carried file against carry.json; returns carry.json."""
+    from services.bench.paper import _data_stages
+    from services.bench.plan import BenchConfig
+    from services.bench.stages import StageRunner
+
+    carry = Path(carry_dir)
+    work = Path(out_dir) / "work"
+    manifest = read_carry_manifest(carry)
+    if work.exists() and any(work.iterdir()):
+        raise CarryError(f"{work} already holds a benchmark; restore into a new --out (or delete it first)")
+    for rel, info in manifest["files"].items():
+        if Path(rel).is_absolute() or ".." in Path(rel).parts or "\\" in rel:
+            raise CarryError(f"{carry / CARRY_MANIFEST}: file path {rel!r} leaves the work directory")
+        source = carry / "work" / rel
+        if not source.is_file():
+            raise CarryError(f"{carry}: carried file work/{rel} is missing")
+        if source.stat().st_size != info["bytes"] or _sha256(source) != info["sha256"]:
+            raise CarryError(f"{carry}: carried file work/{rel} does not match its sha256 in {CARRY_MANIFEST} "
+                             "(changed or truncated since it was saved)")
+    tmp = work.with_name(work.name + ".restoring")
+    shutil.rmtree(tmp, ignore_errors=True)
+    for rel in manifest["files"]:
+        target = tmp / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(carry / "work" / rel, target)
+    work.parent.mkdir(parents=True, exist_ok=True)
+    if work.exists():
+        work.rmdir()   # empty (checked above)
+    os.replace(tmp, work)
+
+    config = BenchConfig.from_dict(json.loads((work / "plan.json").read_text()))
+    _data_stages(StageRunner(work, log), config)
+    for split, carried in manifest["data"].items():
+        remade = json.loads((work / DATA_STAGE_ROOT / split / "manifest.json").read_text())
+        if len(carried["shards"]) != len(remade["shards"]):
+            raise CarryError(f"the regenerated dataset {DATA_STAGE_ROOT}/{split} has {len(remade['shards'])} shards, "
+                             f"the carried run's had {len(carried['shards'])}")
+        for want, have in zip(carried["shards"], remade["shards"]):
+            if (want["filename"], want["sha256"]) != (have["filename"], have["sha256"]):
+                raise CarryError(
+                    f"the regenerated dataset {DATA_STAGE_ROOT}/{split} differs from the carried run's in "
+                    f"{want['filename']} (sha256 {have['sha256'][:12]}… here, {want['sha256'][:12]}… then): its "
+                    "stages were trained on other bytes (another n3dmap or torch); continue it with the code it "
+                    "was saved from, or start the benchmark again")
+    log(f"[carry] restored {len(manifest['files'])} files from {carry} into {work}; datasets regenerated and "
+        "checked: rerun the same `bench paper` command to continue")
+    return manifest
+
+
+def read_carry_manifest(carry: Path) -> dict:
+    path = Path(carry) / CARRY_MANIFEST
+    try:
+        manifest = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CarryError(f"{carry}: no {CARRY_MANIFEST} (not a folder written by `bench carry save`)") from None
+    except ValueError as e:
+        raise CarryError(f"{path}: not JSON ({e})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != CARRY_FORMAT:
+        raise CarryError(f"{path}: not a bench carry manifest (format {manifest.get('format')!r})"
+                         if isinstance(manifest, dict) else f"{path}: not a bench carry manifest")
+    if manifest.get("version") != CARRY_VERSION:
+        raise CarryError(f"{path}: carry version {manifest.get('version')!r}; this n3dmap reads {CARRY_VERSION}")
+    for key in ("data", "files"):
+        if not isinstance(manifest.get(key), dict):
+            raise CarryError(f"{path}: field {key!r} missing or not an object")
+    for rel, info in manifest["files"].items():
+        if not (isinstance(info, dict) and isinstance(info.get("bytes"), int) and isinstance(info.get("sha256"), str)):
+            raise CarryError(f"{path}: files[{rel!r}] needs integer 'bytes' and string 'sha256'")
+    for split, data in manifest["data"].items():
+        shards = data.get("shards") if isinstance(data, dict) else None
+        if not isinstance(shards, list) or not all(isinstance(s, dict) and {"filename", "sha256"} <= set(s)
+                                                  for s in shards):
+            raise CarryError(f"{path}: data[{split!r}] needs a 'shards' list of {{filename, sha256}}")
+    return manifest
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

@@ -1,0 +1,173 @@
+"""services.bench.carry: which files a carry holds (against a hand-written list for a hand-built work directory
+with a finished stage, a stage under way, an evaluation and the temporaries), and a save → restore round trip
+that regenerates the datasets and refuses a tampered carry, a carry that leaves its folder, a restore over an
+existing benchmark, datasets that come out different, and a stage under way on Ray Train."""
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from services.bench.carry import CARRY_MANIFEST, CarryError, carried_files, restore_carry, save_carry
+from services.bench.paper import _data_stages
+from services.bench.plan import plan_for
+from services.bench.stages import StageRunner
+
+
+def _write(path: Path, text: str = "x") -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+
+
+def _checkpoint(root: Path, step: int, *, complete: bool = True) -> None:
+    d = root / f"checkpoint_{step:08d}"
+    _write(d / "task.safetensors", f"weights at {step}")
+    _write(d / "optimizer.pt", f"optimizer at {step}")
+    if complete:
+        _write(d / "state.json", json.dumps({"step": step, "config": {}, "metrics": {}}))
+
+
+def _work_dir(work: Path) -> None:
+    """A benchmark work directory with every kind of file the carry must keep or leave (real datasets)."""
+    config = plan_for("tiny", seeds=(0,), quick=True)
+    _data_stages(StageRunner(work, log=lambda line: None), config)
+    _write(work / "plan.json", json.dumps(config.to_dict()))
+    _write(work / "stages.jsonl", '{"stage": "data/train"}\n')
+    s = work / "seed0"
+    _write(s / "worker.log", "log")
+    done = s / "pretrain_contrastive"            # finished: stopping.json written
+    for name in ("metrics.jsonl", "stopping.json", "stage.json", "selected/bundle.json", "selected/weights.safetensors",
+                 "bundle/bundle.json", "bundle/weights.safetensors", "stopping.partial.json"):
+        _write(done / name)
+    _checkpoint(done / "checkpoints", 100)
+    _checkpoint(done / "checkpoints", 200)
+    going = s / "detector_contrastive_frozen_L2"  # under way: no stopping.json
+    for name in ("metrics.jsonl", "stopping.partial.json", "stage.partial.json", "selected/bundle.json",
+                 "selected/weights.safetensors", "bundle/bundle.json", "labelled_data/manifest.json",
+                 "labelled_data/shard-00000.tar"):
+        _write(going / name)
+    _checkpoint(going / "checkpoints", 100)
+    _checkpoint(going / "checkpoints", 200)
+    _checkpoint(going / "checkpoints", 300, complete=False)   # cut off while written
+    _write(going / "selected.tmp" / "bundle.json")             # temporaries of a selection cut off
+    _write(s / "egomotion" / "labelled_data" / "manifest.json")  # a stage stopped before its first step
+    _write(s / "eval" / "detection" / "contrastive_frozen_L2" / "metrics.json", "{}")
+    _write(s / "eval" / "detection" / "contrastive_frozen_L2" / "stage.json", "{}")
+
+
+EXPECTED = {  # the slow, obvious reference: written out by hand
+    "plan.json", "stages.jsonl", "seed0/worker.log",
+    "seed0/pretrain_contrastive/metrics.jsonl", "seed0/pretrain_contrastive/stopping.json",
+    "seed0/pretrain_contrastive/stage.json", "seed0/pretrain_contrastive/selected/bundle.json",
+    "seed0/pretrain_contrastive/selected/weights.safetensors", "seed0/pretrain_contrastive/stopping.partial.json",
+    "seed0/detector_contrastive_frozen_L2/metrics.jsonl", "seed0/detector_contrastive_frozen_L2/stopping.partial.json",
+    "seed0/detector_contrastive_frozen_L2/stage.partial.json",
+    "seed0/detector_contrastive_frozen_L2/selected/bundle.json",
+    "seed0/detector_contrastive_frozen_L2/selected/weights.safetensors",
+    "seed0/detector_contrastive_frozen_L2/checkpoints/checkpoint_00000200/task.safetensors",
+    "seed0/detector_contrastive_frozen_L2/checkpoints/checkpoint_00000200/optimizer.pt",
+    "seed0/detector_contrastive_frozen_L2/checkpoints/checkpoint_00000200/state.json",
+    "seed0/eval/detection/contrastive_frozen_L2/metrics.json", "seed0/eval/detection/contrastive_frozen_L2/stage.json",
+}
+
+
+@pytest.fixture(scope="module")
+def work(tmp_path_factory) -> Path:
+    work = tmp_path_factory.mktemp("bench") / "report" / "work"
+    _work_dir(work)
+    return work
+
+
+def test_a_carry_holds_exactly_what_cannot_be_remade(work):
+    assert set(carried_files(work)) == EXPECTED
+
+
+def test_save_then_restore_rebuilds_the_work_directory_and_its_datasets(work, tmp_path):
+    carry = tmp_path / "carry"
+    _write(carry / "README.md", "what this carry is")    # a note beside an earlier carry survives a save
+    saved = save_carry(work.parent, carry, log=lambda line: None)
+    assert set(saved["files"]) == EXPECTED and set(saved["data"]) == {"train", "test", "val"}
+    assert (carry / "README.md").read_text() == "what this carry is"
+    assert not (carry / "work" / "data").exists()
+    restored = tmp_path / "restored"
+    restore_carry(carry, restored, log=lambda line: None)
+    for rel in EXPECTED - {"stages.jsonl"}:
+        assert (restored / "work" / rel).read_bytes() == (work / rel).read_bytes(), rel
+    # the journal: the carried lines, then the regenerated data stages'
+    journal = (restored / "work" / "stages.jsonl").read_text()
+    assert journal.startswith((work / "stages.jsonl").read_text())
+    assert [json.loads(l)["stage"] for l in journal.splitlines()[1:]] == ["data/train", "data/test", "data/val"]
+    for split in ("train", "test", "val"):
+        assert (json.loads((restored / "work" / "data" / split / "manifest.json").read_text())["shards"]
+                == json.loads((work / "data" / split / "manifest.json").read_text())["shards"])
+    # nothing the carry leaves out came back
+    assert not (restored / "work" / "seed0" / "pretrain_contrastive" / "checkpoints").exists()
+    assert not (restored / "work" / "seed0" / "detector_contrastive_frozen_L2" / "labelled_data").exists()
+    # saving again replaces the carry: a file gone from the work dir is gone from the carry
+    (work / "seed0" / "worker.log").rename(work / "seed0" / "worker.log.moved")
+    try:
+        again = save_carry(work.parent, carry, log=lambda line: None)
+    finally:
+        (work / "seed0" / "worker.log.moved").rename(work / "seed0" / "worker.log")
+    assert "seed0/worker.log" not in again["files"] and not (carry / "work" / "seed0" / "worker.log").exists()
+
+
+@pytest.fixture
+def carry(work, tmp_path) -> Path:
+    carry = tmp_path / "carry"
+    save_carry(work.parent, carry, log=lambda line: None)
+    return carry
+
+
+def test_a_changed_or_missing_carried_file_is_refused_by_name(carry, tmp_path):
+    target = carry / "work" / "seed0" / "pretrain_contrastive" / "stopping.json"
+    target.write_text("changed")
+    with pytest.raises(CarryError, match="work/seed0/pretrain_contrastive/stopping.json does not match its sha256"):
+        restore_carry(carry, tmp_path / "a", log=lambda line: None)
+    target.unlink()
+    with pytest.raises(CarryError, match="work/seed0/pretrain_contrastive/stopping.json is missing"):
+        restore_carry(carry, tmp_path / "b", log=lambda line: None)
+    assert not (tmp_path / "a" / "work").exists() and not (tmp_path / "b" / "work").exists()
+
+
+def test_a_path_that_leaves_the_carry_is_refused(carry, tmp_path):
+    manifest = json.loads((carry / CARRY_MANIFEST).read_text())
+    manifest["files"]["../../outside"] = {"bytes": 1, "sha256": "0" * 64}
+    (carry / CARRY_MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(CarryError, match="'../../outside' leaves the work directory"):
+        restore_carry(carry, tmp_path / "a", log=lambda line: None)
+
+
+def test_not_a_carry_and_an_existing_benchmark_are_refused(carry, work, tmp_path):
+    with pytest.raises(CarryError, match="no carry.json"):
+        restore_carry(tmp_path / "nothing", tmp_path / "a", log=lambda line: None)
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / CARRY_MANIFEST).write_text('{"format": "something else"}')
+    with pytest.raises(CarryError, match="not a bench carry manifest"):
+        restore_carry(tmp_path / "bad", tmp_path / "a", log=lambda line: None)
+    with pytest.raises(CarryError, match="already holds a benchmark"):
+        restore_carry(carry, work.parent, log=lambda line: None)
+    with pytest.raises(CarryError, match="no benchmark here"):
+        save_carry(tmp_path / "nothing", tmp_path / "c", log=lambda line: None)
+
+
+def test_datasets_that_regenerate_differently_are_refused(carry, tmp_path):
+    manifest = json.loads((carry / CARRY_MANIFEST).read_text())
+    manifest["data"]["test"]["shards"][0]["sha256"] = "f" * 64
+    (carry / CARRY_MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(CarryError, match=r"regenerated dataset data/test differs .* trained on other bytes"):
+        restore_carry(carry, tmp_path / "a", log=lambda line: None)
+
+
+def test_a_stage_under_way_on_ray_train_is_refused(work, tmp_path):
+    copy = tmp_path / "report" / "work"
+    shutil.copytree(work, copy)
+    going = copy / "seed0" / "detector_contrastive_frozen_L2"
+    shutil.move(going / "checkpoints", going / "ray_train")
+    with pytest.raises(CarryError, match="under way on Ray Train"):
+        save_carry(copy.parent, tmp_path / "carry", log=lambda line: None)
+    # finished, its Ray storage is left behind like any finished stage's checkpoints
+    _write(going / "stopping.json")
+    save_carry(copy.parent, tmp_path / "carry", log=lambda line: None)
+    assert not any("ray_train" in rel for rel in json.loads((tmp_path / "carry" / CARRY_MANIFEST).read_text())["files"])
