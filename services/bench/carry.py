@@ -8,13 +8,15 @@ regenerate; on another machine `restore_carry(CARRY, OUT)` rebuilds OUT/work fro
 `n3dmap bench paper --out OUT ...` command continues where the saved run stopped.
 
 What is carried: OUT/work/plan.json, OUT/work/stages.jsonl and every file under OUT/work/seed<s>/, except
-- the datasets (OUT/work/data/*): the restore regenerates them from the plan (the generator is deterministic:
-  the same code and torch write the same bytes) and checks each shard's sha256 against the carried manifests,
-  so a resumed stage never trains on other bytes than its first part did;
+- the datasets (OUT/work/data/*; only their stage.json, the time they took, is carried): the restore
+  regenerates them from the plan (the generator is deterministic: the same code and torch write the same
+  bytes) and checks each shard's sha256 against the carried manifests, so a resumed stage never trains on
+  other bytes than its first part did;
 - the label subsets (RUN_DIR/labelled_data/): copies of training records, remade by the stage that reads them;
 - a training run's exported RUN_DIR/bundle/: remade by its next export (later stages read RUN_DIR/selected/);
-- checkpoints: none of a finished training stage (its output is RUN_DIR/selected/), the newest one of a stage
-  under way (a rerun resumes there; older ones are never read);
+- checkpoints: none of a finished training stage (its output is RUN_DIR/selected/), and of a stage under way
+  only the one its rerun resumes from (the loop's newest `checkpoint_<step>`; older ones are never read, and a
+  `.staging_*` folder is a checkpoint a kill cut off before it was committed);
 - temporaries (*.tmp, selected.old).
 
 CARRY/carry.json lists every carried file with its size and sha256 (the restore checks each) and the data
@@ -49,6 +51,7 @@ RUN_DIR_NAMES = frozenset({"metrics.jsonl", "stopping.json", "stopping.partial.j
                            RAY_STORAGE, *REMADE_DIRS})
 TEMPORARY_SUFFIXES = (".tmp", ".old")
 TRAINING_MARKER = "stopping.json"                 # services.bench.stopping.MARKER: the stage is finished
+STAGE_INFO = "stage.json"                         # a finished stage's wall time (services.bench.stages)
 
 
 class CarryError(N3dmapError):
@@ -96,6 +99,8 @@ def carried_files(work: Path) -> Iterator[str]:
     for name in TOP_FILES:
         if (work / name).is_file():
             yield name
+    for stage_json in sorted((work / DATA_STAGE_ROOT).glob(f"*/{STAGE_INFO}")):
+        yield stage_json.relative_to(work).as_posix()   # the data stages' times, for the report
     for seed_dir in sorted(p for p in work.iterdir() if p.is_dir() and p.name != DATA_STAGE_ROOT):
         yield from _walk(work, seed_dir)
 
@@ -118,7 +123,7 @@ def _walk(work: Path, directory: Path) -> Iterator[str]:
                                      "or run the benchmark in-process (--workers 0)")
                 continue
             if run_dir and name == CHECKPOINTS:
-                newest = None if finished else _newest_checkpoint(path)
+                newest = None if finished else _resumed_checkpoint(path)
                 if newest is not None:
                     yield from _walk(work, newest)
                 continue
@@ -127,9 +132,17 @@ def _walk(work: Path, directory: Path) -> Iterator[str]:
             yield path.relative_to(work).as_posix()
 
 
+def _resumed_checkpoint(root: Path) -> Path | None:
+    """The checkpoint the in-process loop resumes from: its own store's newest complete `checkpoint_<step>`
+    (never a `.staging_*` folder that a kill left behind, whatever step it holds)."""
+    from services.training.checkpoints import LocalCheckpointStore
+
+    return LocalCheckpointStore(root, keep=1).latest()
+
+
 def _newest_checkpoint(root: Path) -> Path | None:
-    """The complete checkpoint (one with its state.json) of the highest step under `root`, at any depth (Ray
-    Train nests its checkpoints one level further than the in-process loop)."""
+    """Any checkpoint (a folder with a readable state.json) of the highest step under `root`, at any depth (Ray
+    Train nests its checkpoints one level further than the in-process loop): is a Ray stage under way?"""
     best, best_step = None, -1
     for state in root.rglob("state.json"):
         try:
@@ -143,7 +156,9 @@ def _newest_checkpoint(root: Path) -> Path | None:
 
 def restore_carry(carry_dir: str | Path, out_dir: str | Path, *, log: Callable[[str], None] = print) -> dict:
     """Rebuild OUT/work from CARRY_DIR (OUT/work must not exist yet), regenerating the datasets and checking
-    them and every carried file against carry.json; returns carry.json."""
+    them and every carried file against carry.json; returns carry.json. Everything is built in a folder beside
+    OUT/work and moved into place only once it all checked out: a refused or interrupted restore leaves no
+    work directory a `bench paper` rerun could take for a benchmark."""
     from services.bench.paper import _data_stages
     from services.bench.plan import BenchConfig
     from services.bench.stages import StageRunner
@@ -154,8 +169,6 @@ def restore_carry(carry_dir: str | Path, out_dir: str | Path, *, log: Callable[[
     if work.exists() and any(work.iterdir()):
         raise CarryError(f"{work} already holds a benchmark; restore into a new --out (or delete it first)")
     for rel, info in manifest["files"].items():
-        if Path(rel).is_absolute() or ".." in Path(rel).parts or "\\" in rel:
-            raise CarryError(f"{carry / CARRY_MANIFEST}: file path {rel!r} leaves the work directory")
         source = carry / "work" / rel
         if not source.is_file():
             raise CarryError(f"{carry}: carried file work/{rel} is missing")
@@ -164,18 +177,34 @@ def restore_carry(carry_dir: str | Path, out_dir: str | Path, *, log: Callable[[
                              "(changed or truncated since it was saved)")
     tmp = work.with_name(work.name + ".restoring")
     shutil.rmtree(tmp, ignore_errors=True)
-    for rel in manifest["files"]:
-        target = tmp / rel
-        target.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(carry / "work" / rel, target)
-    work.parent.mkdir(parents=True, exist_ok=True)
-    if work.exists():
-        work.rmdir()   # empty (checked above)
-    os.replace(tmp, work)
+    try:
+        data_times = []
+        for rel in manifest["files"]:
+            if rel.startswith(f"{DATA_STAGE_ROOT}/"):
+                data_times.append(rel)   # copied over the regenerated stages' own times below
+                continue
+            target = tmp / rel
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(carry / "work" / rel, target)
+        config = BenchConfig.from_dict(json.loads((tmp / "plan.json").read_text()))
+        _data_stages(StageRunner(tmp, log), config)
+        _check_regenerated_data(manifest["data"], tmp)
+        for rel in data_times:
+            shutil.copyfile(carry / "work" / rel, tmp / rel)
+        work.parent.mkdir(parents=True, exist_ok=True)
+        if work.exists():
+            work.rmdir()   # empty (checked above)
+        os.replace(tmp, work)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    log(f"[carry] restored {len(manifest['files'])} files from {carry} into {work}; datasets regenerated and "
+        "checked: rerun the same `bench paper` command to continue")
+    return manifest
 
-    config = BenchConfig.from_dict(json.loads((work / "plan.json").read_text()))
-    _data_stages(StageRunner(work, log), config)
-    for split, carried in manifest["data"].items():
+
+def _check_regenerated_data(carried_data: dict, work: Path) -> None:
+    """CarryError unless every regenerated dataset under `work` has the carried manifests' shards, byte for byte."""
+    for split, carried in carried_data.items():
         remade = json.loads((work / DATA_STAGE_ROOT / split / "manifest.json").read_text())
         if len(carried["shards"]) != len(remade["shards"]):
             raise CarryError(f"the regenerated dataset {DATA_STAGE_ROOT}/{split} has {len(remade['shards'])} shards, "
@@ -187,9 +216,6 @@ def restore_carry(carry_dir: str | Path, out_dir: str | Path, *, log: Callable[[
                     f"{want['filename']} (sha256 {have['sha256'][:12]}… here, {want['sha256'][:12]}… then): its "
                     "stages were trained on other bytes (another n3dmap or torch); continue it with the code it "
                     "was saved from, or start the benchmark again")
-    log(f"[carry] restored {len(manifest['files'])} files from {carry} into {work}; datasets regenerated and "
-        "checked: rerun the same `bench paper` command to continue")
-    return manifest
 
 
 def read_carry_manifest(carry: Path) -> dict:
@@ -208,7 +234,12 @@ def read_carry_manifest(carry: Path) -> dict:
     for key in ("data", "files"):
         if not isinstance(manifest.get(key), dict):
             raise CarryError(f"{path}: field {key!r} missing or not an object")
+    if "plan.json" not in manifest["files"]:
+        raise CarryError(f"{path}: files lacks plan.json (the benchmark's plan, which the restore regenerates the "
+                         "datasets from)")
     for rel, info in manifest["files"].items():
+        if Path(rel).is_absolute() or ".." in Path(rel).parts or "\\" in rel:
+            raise CarryError(f"{path}: file path {rel!r} leaves the work directory")
         if not (isinstance(info, dict) and isinstance(info.get("bytes"), int) and isinstance(info.get("sha256"), str)):
             raise CarryError(f"{path}: files[{rel!r}] needs integer 'bytes' and string 'sha256'")
     for split, data in manifest["data"].items():

@@ -50,6 +50,9 @@ def _work_dir(work: Path) -> None:
     _checkpoint(going / "checkpoints", 100)
     _checkpoint(going / "checkpoints", 200)
     _checkpoint(going / "checkpoints", 300, complete=False)   # cut off while written
+    staged = going / "checkpoints" / ".staging_400_x1y2"          # written whole, then killed before its rename
+    _write(staged / "state.json", json.dumps({"step": 400, "config": {}, "metrics": {}}))
+    _write(staged / "task.safetensors", "weights at 400")
     _write(going / "selected.tmp" / "bundle.json")             # temporaries of a selection cut off
     _write(s / "egomotion" / "labelled_data" / "manifest.json")  # a stage stopped before its first step
     _write(s / "eval" / "detection" / "contrastive_frozen_L2" / "metrics.json", "{}")
@@ -58,6 +61,7 @@ def _work_dir(work: Path) -> None:
 
 EXPECTED = {  # the slow, obvious reference: written out by hand
     "plan.json", "stages.jsonl", "seed0/worker.log",
+    "data/train/stage.json", "data/test/stage.json", "data/val/stage.json",
     "seed0/pretrain_contrastive/metrics.jsonl", "seed0/pretrain_contrastive/stopping.json",
     "seed0/pretrain_contrastive/stage.json", "seed0/pretrain_contrastive/selected/bundle.json",
     "seed0/pretrain_contrastive/selected/weights.safetensors", "seed0/pretrain_contrastive/stopping.partial.json",
@@ -89,10 +93,10 @@ def test_save_then_restore_rebuilds_the_work_directory_and_its_datasets(work, tm
     saved = save_carry(work.parent, carry, log=lambda line: None)
     assert set(saved["files"]) == EXPECTED and set(saved["data"]) == {"train", "test", "val"}
     assert (carry / "README.md").read_text() == "what this carry is"
-    assert not (carry / "work" / "data").exists()
+    assert sorted(p.name for p in (carry / "work" / "data").rglob("*") if p.is_file()) == ["stage.json"] * 3
     restored = tmp_path / "restored"
     restore_carry(carry, restored, log=lambda line: None)
-    for rel in EXPECTED - {"stages.jsonl"}:
+    for rel in EXPECTED - {"stages.jsonl"}:   # the data stages' times too: the carried ones, not the regeneration's
         assert (restored / "work" / rel).read_bytes() == (work / rel).read_bytes(), rel
     # the journal: the carried lines, then the regenerated data stages'
     journal = (restored / "work" / "stages.jsonl").read_text()
@@ -139,6 +143,14 @@ def test_a_path_that_leaves_the_carry_is_refused(carry, tmp_path):
         restore_carry(carry, tmp_path / "a", log=lambda line: None)
 
 
+def test_a_manifest_without_the_plan_is_refused(carry, tmp_path):
+    manifest = json.loads((carry / CARRY_MANIFEST).read_text())
+    del manifest["files"]["plan.json"]
+    (carry / CARRY_MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(CarryError, match="files lacks plan.json"):
+        restore_carry(carry, tmp_path / "a", log=lambda line: None)
+
+
 def test_not_a_carry_and_an_existing_benchmark_are_refused(carry, work, tmp_path):
     with pytest.raises(CarryError, match="no carry.json"):
         restore_carry(tmp_path / "nothing", tmp_path / "a", log=lambda line: None)
@@ -158,6 +170,8 @@ def test_datasets_that_regenerate_differently_are_refused(carry, tmp_path):
     (carry / CARRY_MANIFEST).write_text(json.dumps(manifest))
     with pytest.raises(CarryError, match=r"regenerated dataset data/test differs .* trained on other bytes"):
         restore_carry(carry, tmp_path / "a", log=lambda line: None)
+    # nothing is left that a `bench paper` rerun could take for a benchmark with its data made
+    assert not (tmp_path / "a" / "work").exists() and not (tmp_path / "a" / "work.restoring").exists()
 
 
 def test_a_stage_under_way_on_ray_train_is_refused(work, tmp_path):
