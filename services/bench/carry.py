@@ -80,9 +80,10 @@ def save_carry(out_dir: str | Path, carry_dir: str | Path, *, log: Callable[[str
     manifest = {"format": CARRY_FORMAT, "version": CARRY_VERSION, "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                 "data": data, "files": listing}
     write_json(tmp / CARRY_MANIFEST, manifest)
-    readme = carry / "README.md"
-    if readme.is_file():   # a hand-written note beside the carry (what run it is, how to continue it) stays
-        shutil.copyfile(readme, tmp / "README.md")
+    if carry.is_dir():   # hand-written files beside the carry (what run it is, how to continue it) stay
+        for kept in carry.iterdir():
+            if kept.is_file() and kept.name != CARRY_MANIFEST:
+                shutil.copy2(kept, tmp / kept.name)
     old = carry.with_name(carry.name + ".old")
     shutil.rmtree(old, ignore_errors=True)
     if carry.exists():

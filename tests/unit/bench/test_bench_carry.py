@@ -89,10 +89,12 @@ def test_a_carry_holds_exactly_what_cannot_be_remade(work):
 
 def test_save_then_restore_rebuilds_the_work_directory_and_its_datasets(work, tmp_path):
     carry = tmp_path / "carry"
-    _write(carry / "README.md", "what this carry is")    # a note beside an earlier carry survives a save
+    _write(carry / "README.md", "what this carry is")    # notes beside an earlier carry survive a save
+    _write(carry / "continue.sh", "bench paper ...")
     saved = save_carry(work.parent, carry, log=lambda line: None)
     assert set(saved["files"]) == EXPECTED and set(saved["data"]) == {"train", "test", "val"}
     assert (carry / "README.md").read_text() == "what this carry is"
+    assert (carry / "continue.sh").read_text() == "bench paper ..."
     assert sorted(p.name for p in (carry / "work" / "data").rglob("*") if p.is_file()) == ["stage.json"] * 3
     restored = tmp_path / "restored"
     restore_carry(carry, restored, log=lambda line: None)
