@@ -78,7 +78,7 @@ def save_carry(out_dir: str | Path, carry_dir: str | Path, *, log: Callable[[str
         shutil.copyfile(work / rel, target)
         listing[rel] = {"bytes": target.stat().st_size, "sha256": _sha256(target)}
     manifest = {"format": CARRY_FORMAT, "version": CARRY_VERSION, "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-                "data": data, "files": listing}
+                "progress": progress(work, listing), "data": data, "files": listing}
     write_json(tmp / CARRY_MANIFEST, manifest)
     if carry.is_dir():   # hand-written files beside the carry (what run it is, how to continue it) stay
         for kept in carry.iterdir():
@@ -91,8 +91,35 @@ def save_carry(out_dir: str | Path, carry_dir: str | Path, *, log: Callable[[str
     os.replace(tmp, carry)
     shutil.rmtree(old, ignore_errors=True)
     total = sum(f["bytes"] for f in listing.values())
-    log(f"[carry] saved {len(listing)} files ({total / 1e6:.1f} MB) of {work} to {carry}")
+    done = manifest["progress"]
+    log(f"[carry] saved {len(listing)} files ({total / 1e6:.1f} MB) of {work} to {carry}: "
+        f"{len(done['finished'])} stages finished, {len(done['under_way'])} under way"
+        + "".join(f"\n[carry]   under way: {stage} at step {step}" for stage, step in done["under_way"].items()))
     return manifest
+
+
+def progress(work: Path, listing: dict) -> dict:
+    """{"finished": [stage, …], "under_way": {stage: checkpoint step or None}} of the seeds' stages in a carry's
+    file list: a stage is finished when its marker (a training run's stopping.json, an evaluation's
+    metrics.json) is carried, under way when only its stage.partial.json or its run files are."""
+    finished, under_way = [], {}
+    for rel in listing:
+        parts = rel.split("/")
+        if parts[0] in TOP_FILES or parts[0] == DATA_STAGE_ROOT:
+            continue
+        name = parts[-1]
+        if name == TRAINING_MARKER or (name == "metrics.json" and "/eval/" in f"/{rel}"):
+            finished.append("/".join(parts[:-1]))
+    for rel in listing:
+        parts = rel.split("/")
+        if CHECKPOINTS in parts and parts[-1] == "state.json":
+            stage = "/".join(parts[:parts.index(CHECKPOINTS)])
+            under_way[stage] = int(json.loads((work / rel).read_text())["step"])
+        elif parts[-1] in ("stage.partial.json", "stopping.partial.json"):
+            stage = "/".join(parts[:-1])
+            if stage not in finished:
+                under_way.setdefault(stage, None)
+    return {"finished": sorted(finished), "under_way": dict(sorted(under_way.items()))}
 
 
 def carried_files(work: Path) -> Iterator[str]:

@@ -93,6 +93,8 @@ def test_save_then_restore_rebuilds_the_work_directory_and_its_datasets(work, tm
     _write(carry / "continue.sh", "bench paper ...")
     saved = save_carry(work.parent, carry, log=lambda line: None)
     assert set(saved["files"]) == EXPECTED and set(saved["data"]) == {"train", "test", "val"}
+    assert saved["progress"] == {"finished": ["seed0/eval/detection/contrastive_frozen_L2", "seed0/pretrain_contrastive"],
+                                 "under_way": {"seed0/detector_contrastive_frozen_L2": 200}}
     assert (carry / "README.md").read_text() == "what this carry is"
     assert (carry / "continue.sh").read_text() == "bench paper ..."
     assert sorted(p.name for p in (carry / "work" / "data").rglob("*") if p.is_file()) == ["stage.json"] * 3
