@@ -77,8 +77,12 @@ def main(argv: list[str] | None = None) -> int:
         # a read-only or full disk, a port or endpoint that cannot be reached) — their fix, not a bug.
         print(f"n3dmap {args.command}: error: {_one_line(e)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt as e:  # a TrainingInterrupted says where its checkpoint is
-        print(f"n3dmap {args.command}: interrupted" + (f": {_one_line(e)}" if str(e) else ""), file=sys.stderr)
+    except KeyboardInterrupt as e:
+        # Our own subclasses (a TrainingInterrupted) say where the checkpoint is. A plain Ctrl-C says nothing
+        # more: its text, if any, is CPython's (a Ctrl-C inside a codec comes back as "decoding with 'cp437'
+        # codec failed (KeyboardInterrupt: )"), not ours.
+        said = _one_line(e) if type(e) is not KeyboardInterrupt else ""
+        print(f"n3dmap {args.command}: interrupted" + (f": {said}" if said else ""), file=sys.stderr)
         return 130
     return int(result or 0)
 
