@@ -17,11 +17,12 @@ What is carried: OUT/work/plan.json, OUT/work/stages.jsonl and every file under 
 - checkpoints: none of a finished training stage (its output is RUN_DIR/selected/), and of a stage under way
   only the one its rerun resumes from (the loop's newest `checkpoint_<step>`; older ones are never read, and a
   `.staging_*` folder is a checkpoint a kill cut off before it was committed);
-- temporaries (*.tmp, selected.old).
+- temporaries (*.tmp, selected.old) and the pid files of the processes writing the run (services.bench.running).
 
 CARRY/carry.json lists every carried file with its size and sha256 (the restore checks each) and the data
-manifests. Save a run only while nothing writes to it: stop `bench paper` first (SIGTERM or Ctrl-C: its
-stages save a checkpoint at the step they are in).
+manifests. A run is saved only while nothing writes to it: `save_carry` refuses while the `bench paper` process
+or a seed worker of it is alive (services.bench.running); stop it first (SIGTERM or Ctrl-C: its stages save a
+checkpoint at the step they are in).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from core.errors import N3dmapError
+from services.bench.running import PID_SUFFIX, live_writers
 from services.bench.stages import write_json
 
 CARRY_FORMAT = "n3dmap-bench-carry"
@@ -64,6 +66,12 @@ def save_carry(out_dir: str | Path, carry_dir: str | Path, *, log: Callable[[str
     carry = Path(carry_dir)
     if not (work / "plan.json").is_file():
         raise CarryError(f"{out_dir}: no benchmark here (no work/plan.json); give the --out of `bench paper`")
+    live = live_writers(work)
+    if live:
+        raise CarryError(f"{work} is still being written by " + ", ".join(
+            f"pid {pid} ({path.relative_to(work)})" for path, pid in live)
+            + ": stop `bench paper` first (SIGTERM or Ctrl-C) and wait for its workers to save their checkpoints "
+              "and exit")
     data = {}
     for manifest_path in sorted((work / DATA_STAGE_ROOT).glob("*/manifest.json")):
         manifest = json.loads(manifest_path.read_text())
@@ -139,7 +147,7 @@ def _walk(work: Path, directory: Path) -> Iterator[str]:
     finished = TRAINING_MARKER in names
     for name in sorted(names):
         path = directory / name
-        if name.endswith(TEMPORARY_SUFFIXES):
+        if name.endswith(TEMPORARY_SUFFIXES) or name.endswith(PID_SUFFIX):
             continue
         if path.is_dir():
             if run_dir and name in REMADE_DIRS:

@@ -72,10 +72,19 @@ def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds:
     (may oversubscribe); rerun_changed: `out_dir` may hold a benchmark of another plan, whose stages that
     the change touches are redone (services.bench.replan) and the others kept; redo: stage-name patterns
     whose stages, and every stage downstream of them, are redone (after a code change)."""
+    from services.bench.running import BENCH_PID, running
+
+    out = Path(out_dir)
+    with running(out / "work" / BENCH_PID):   # `bench carry save` refuses to copy the work dir meanwhile
+        return _run_paper_bench(config, out, parallel_seeds=parallel_seeds, threads=threads,
+                                rerun_changed=rerun_changed, redo=redo, log=log)
+
+
+def _run_paper_bench(config: BenchConfig, out: Path, *, parallel_seeds: int, threads: int | None,
+                     rerun_changed: bool, redo: Sequence[str], log: Callable[[str], None]) -> dict:
     from services.bench.report import write_bench_report
 
     started = time.monotonic()
-    out = Path(out_dir)
     stages = StageRunner(out / "work", log)
     _check_same_plan(out / "work" / "plan.json", config, rerun_changed=rerun_changed, log=log)
     if redo:
@@ -116,14 +125,17 @@ def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds:
 
 def run_one_seed(out_dir: str | Path, seed: int, *, log: Callable[[str], None] = print) -> None:
     """Every stage of one seed, with the plan the parent wrote to OUT/work/plan.json (a seed worker)."""
+    from services.bench.running import WORKER_PID, running
+
     out = Path(out_dir)
     config = BenchConfig.from_dict(json.loads((out / "work" / "plan.json").read_text()))
     if seed not in config.seeds:
         raise BenchConfigError(f"seed {seed} is not in the plan's seeds {list(config.seeds)}")
-    stages = StageRunner(out / "work", log)
-    data = _record_data_stages(stages, config)
-    seed_stages(stages, config, seed, data, _load_records(data["test"]), _load_records(data["val"]),
-                 resolve_device(config.device))
+    with running(out / "work" / f"seed{seed}" / WORKER_PID):
+        stages = StageRunner(out / "work", log)
+        data = _record_data_stages(stages, config)
+        seed_stages(stages, config, seed, data, _load_records(data["test"]), _load_records(data["val"]),
+                     resolve_device(config.device))
 
 
 def _thread_plan(processes: int, threads: int | None, *, cap_processes: bool = True) -> ThreadPlan:

@@ -166,6 +166,8 @@ def test_rerun_skips_finished_stages(bench_run):
     appended = [json.loads(l) for l in journal.read_text().splitlines()[before:]]
     assert appended and {e["status"] for e in appended} == {"skipped"}
     assert (out / "report.md").is_file()
+    # the processes that wrote the run have left no pid file behind (services.bench.running)
+    assert not list((out / "work").rglob("*.pid"))
 
 
 def test_thread_plan_is_printed_and_fits_the_cpus(bench_run):
@@ -266,6 +268,11 @@ def test_a_seed_worker_stopped_by_a_signal_is_reported_as_resumable_and_the_reru
             time.sleep(0.05)
         children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
         pid = next(int(c) for c in children if "--seed\x001\x00" in Path(f"/proc/{c}/cmdline").read_text())
+        # while it runs, its work dir cannot be carried away
+        busy = subprocess.run([sys.executable, "-m", "services.cli.main", "bench", "carry", "save", "--out", str(copy),
+                               "--to", str(tmp_path / "carry")], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert busy.returncode == 2 and "is still being written by pid" in busy.stderr, busy.stderr[-2000:]
+        assert f"pid {pid} (seed1/worker.pid)" in busy.stderr and "Traceback" not in busy.stderr
         os.kill(pid, signal.SIGTERM)
         stdout, stderr = proc.communicate(timeout=180)
     finally:

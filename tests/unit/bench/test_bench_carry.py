@@ -36,6 +36,7 @@ def _work_dir(work: Path) -> None:
     _write(work / "stages.jsonl", '{"stage": "data/train"}\n')
     s = work / "seed0"
     _write(s / "worker.log", "log")
+    _write(s / "worker.pid", "999999999\n")   # left by a worker killed outright: a dead pid, not carried
     done = s / "pretrain_contrastive"            # finished: stopping.json written
     for name in ("metrics.jsonl", "stopping.json", "stage.json", "selected/bundle.json", "selected/weights.safetensors",
                  "bundle/bundle.json", "bundle/weights.safetensors", "stopping.partial.json"):
@@ -189,3 +190,19 @@ def test_a_stage_under_way_on_ray_train_is_refused(work, tmp_path):
     _write(going / "stopping.json")
     save_carry(copy.parent, tmp_path / "carry", log=lambda line: None)
     assert not any("ray_train" in rel for rel in json.loads((tmp_path / "carry" / CARRY_MANIFEST).read_text())["files"])
+
+
+def test_a_run_still_being_written_is_refused(work, tmp_path):
+    import subprocess
+    import sys
+
+    worker = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (work / "seed0" / "worker.pid").write_text(f"{worker.pid}\n")
+        with pytest.raises(CarryError, match=rf"still being written by pid {worker.pid} \(seed0/worker.pid\): stop"):
+            save_carry(work.parent, tmp_path / "carry", log=lambda line: None)
+        assert not (tmp_path / "carry").exists()
+    finally:
+        worker.kill()
+        worker.wait()
+        (work / "seed0" / "worker.pid").write_text("999999999\n")
