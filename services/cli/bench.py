@@ -1,7 +1,9 @@
 """`n3dmap bench paper`: generate data, pretrain, train the downstream modules, evaluate, and report;
+`n3dmap bench status`: how far a run is (services/bench/status.py);
 `n3dmap bench carry save|restore`: carry a benchmark's work to another machine (services/bench/carry.py).
 
     n3dmap bench paper --preset small --out REPORT_DIR [--seeds 3] [--parallel-seeds N] [--quick]
+    n3dmap bench status --out REPORT_DIR [--json]
     n3dmap bench carry save --out REPORT_DIR --to CARRY_DIR
     n3dmap bench carry restore --from CARRY_DIR --out REPORT_DIR
 
@@ -106,6 +108,15 @@ def register(subparsers) -> None:
                         "the code")
     p.set_defaults(func=run)
 
+    status = kinds.add_parser(
+        "status", help="how far a bench paper run is: finished stages, those under way (at which step), what runs next",
+        description="Read REPORT_DIR/work and its plan, run nothing, and print every seed's finished stages, the "
+                    "stages under way (a training stage: the step of the checkpoint it resumes from) and the "
+                    "next stage to run, with the stage time spent so far (services/bench/status.py).")
+    status.add_argument("--out", required=True, metavar="REPORT_DIR", help="the --out of the `bench paper` run")
+    status.add_argument("--json", action="store_true", help="print the status as JSON, one entry per stage")
+    status.set_defaults(func=run_status)
+
     carry = kinds.add_parser(
         "carry", help="carry a benchmark's work to another machine: save what cannot be remade, restore it",
         description="Save the part of a `bench paper` work directory that cannot be remade (trained stages' "
@@ -123,6 +134,14 @@ def register(subparsers) -> None:
     restore.add_argument("--out", required=True, metavar="REPORT_DIR",
                          help="the --out the `bench paper` command will be given (its work/ must not exist yet)")
     restore.set_defaults(func=run_carry_restore)
+
+
+def run_status(args: argparse.Namespace) -> int:
+    from services.bench.status import bench_status, format_status
+
+    status = bench_status(args.out)
+    print(json.dumps(status, indent=1) if args.json else format_status(status, args.out))
+    return 0
 
 
 def run_carry_save(args: argparse.Namespace) -> int:

@@ -170,6 +170,17 @@ def test_rerun_skips_finished_stages(bench_run):
     assert not list((out / "work").rglob("*.pid"))
 
 
+def test_status_of_a_finished_run_lists_every_stage_as_finished(bench_run):
+    out, _ = bench_run
+    proc = subprocess.run([sys.executable, "-m", "services.cli.main", "bench", "status", "--out", str(out), "--json"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    status = json.loads(proc.stdout)
+    stages = json.loads((out / "metrics.json").read_text())["metrics"]["stage_seconds"]
+    assert {r["name"] for r in status["stages"]} == set(stages)
+    assert status["counts"] == {"finished": len(stages), "under way": 0, "to run": 0}
+
+
 def test_thread_plan_is_printed_and_fits_the_cpus(bench_run):
     from services.threads import usable_cpus
 

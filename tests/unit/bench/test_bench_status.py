@@ -1,0 +1,75 @@
+"""services.bench.status on a hand-built work directory of the quick tiny plan: every stage of the plan listed
+once, in a seed's order, finished / under way / to run by its marker and directory, a training stage under way
+at the step of the checkpoint its loop resumes from with its rule's bound, the stage times from stage.json and
+stage.partial.json, and the CLI's one-line error where there is no benchmark."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from services.bench.plan import plan_for
+from services.bench.replan import stage_digests
+from services.bench.status import bench_status, format_status
+
+
+def _write(path: Path, value) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(value if isinstance(value, str) else json.dumps(value))
+
+
+@pytest.fixture
+def out(tmp_path) -> Path:
+    config = plan_for("tiny", seeds=(0, 1), quick=True)
+    work = tmp_path / "report" / "work"
+    _write(work / "plan.json", config.to_dict())
+    for split in ("train", "test", "val"):
+        _write(work / "data" / split / "manifest.json", {})
+        _write(work / "data" / split / "stage.json", {"stage": f"data/{split}", "seconds": 1.5})
+    s0 = work / "seed0"
+    _write(s0 / "pretrain_regression" / "stopping.json", {})
+    _write(s0 / "pretrain_regression" / "stage.json", {"seconds": 100.0})
+    going = s0 / "pretrain_contrastive"
+    _write(going / "stage.partial.json", {"seconds": 40.0})
+    for step in (1, 2):
+        _write(going / "checkpoints" / f"checkpoint_{step:08d}" / "state.json", {"step": step, "config": {}})
+    _write(going / "checkpoints" / ".staging_9_x" / "state.json", {"step": 9, "config": {}})  # never resumed from
+    _write(s0 / "eval" / "retrieval" / "random" / "metrics.json", {})
+    _write(s0 / "eval" / "retrieval" / "random" / "stage.json", {"seconds": 3.0})
+    _write(work / "seed1" / "eval" / "flow" / "volume" / "stage.partial.json", {"seconds": 2.0})  # an evaluation stopped
+    return tmp_path / "report"
+
+
+def test_every_stage_of_the_plan_is_listed_once_with_its_state(out):
+    config = plan_for("tiny", seeds=(0, 1), quick=True)
+    status = bench_status(out)
+    rows = {r["name"]: r for r in status["stages"]}
+    assert list(rows) == list(stage_digests(config, out / "work"))   # the plan's stages, in its order
+    finished = {"data/train", "data/test", "data/val", "seed0/pretrain_regression", "seed0/eval/retrieval/random"}
+    under_way = {"seed0/pretrain_contrastive", "seed1/eval/flow/volume"}
+    assert {n for n, r in rows.items() if r["state"] == "finished"} == finished
+    assert {n for n, r in rows.items() if r["state"] == "under way"} == under_way
+    assert status["counts"] == {"finished": 5, "under way": 2, "to run": len(rows) - 7}
+    assert rows["seed0/pretrain_regression"]["seconds"] == 100.0
+    going = rows["seed0/pretrain_contrastive"]
+    assert (going["step"], going["max_steps"], going["seconds"]) == (2, config.rules.pretrain.max_steps, 40.0)
+    stopped_eval = rows["seed1/eval/flow/volume"]
+    assert (stopped_eval["step"], stopped_eval["seconds"]) == (None, 2.0)
+
+
+def test_the_summary_says_per_seed_what_is_under_way_and_what_runs_next(out):
+    text = format_status(bench_status(out), "R")
+    lines = text.splitlines()
+    assert lines[0].startswith("bench R: preset tiny, seeds [0, 1]: 5 of ") and "2 under way" in lines[0]
+    assert lines[1] == "  data: 3 of 3 finished"
+    assert lines[2].startswith("  seed0: 2 of ") and "under way: pretrain_contrastive at step 2 (its rule stops by " in lines[2]
+    assert "40 s in stopped attempts" in lines[2] and "next to run: detector_random_finetuned_L2" in lines[2]
+    assert "under way: eval/flow/volume, 2 s in stopped attempts" in lines[3] and "next to run: pretrain_regression" in lines[3]
+
+
+def test_no_benchmark_is_one_line_exit_2(tmp_path, capsys):
+    from services.cli.main import main
+
+    assert main(["bench", "status", "--out", str(tmp_path / "nothing")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"n3dmap bench: error: {tmp_path / 'nothing'}: no benchmark here (no work/plan.json); give the --out of `bench paper`"
