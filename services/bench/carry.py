@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from core.errors import N3dmapError
-from services.bench.running import PID_SUFFIX, live_writers
+from services.bench.running import PID_SUFFIX, describe, live_writers
 from services.bench.stages import write_json
 
 CARRY_FORMAT = "n3dmap-bench-carry"
@@ -66,12 +66,7 @@ def save_carry(out_dir: str | Path, carry_dir: str | Path, *, log: Callable[[str
     carry = Path(carry_dir)
     if not (work / "plan.json").is_file():
         raise CarryError(f"{out_dir}: no benchmark here (no work/plan.json); give the --out of `bench paper`")
-    live = live_writers(work)
-    if live:
-        raise CarryError(f"{work} is still being written by " + ", ".join(
-            f"pid {pid} ({path.relative_to(work)})" for path, pid in live)
-            + ": stop `bench paper` first (SIGTERM or Ctrl-C) and wait for its workers to save their checkpoints "
-              "and exit")
+    _refuse_if_written(work)
     data = {}
     for manifest_path in sorted((work / DATA_STAGE_ROOT).glob("*/manifest.json")):
         manifest = json.loads(manifest_path.read_text())
@@ -87,6 +82,7 @@ def save_carry(out_dir: str | Path, carry_dir: str | Path, *, log: Callable[[str
         listing[rel] = {"bytes": target.stat().st_size, "sha256": _sha256(target)}
     manifest = {"format": CARRY_FORMAT, "version": CARRY_VERSION, "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                 "progress": progress(work, listing), "data": data, "files": listing}
+    _refuse_if_written(work, tmp)   # a run started while we copied: the copy may be half old, half new
     write_json(tmp / CARRY_MANIFEST, manifest)
     if carry.is_dir():   # hand-written files beside the carry (what run it is, how to continue it) stay
         for kept in carry.iterdir():
@@ -130,6 +126,16 @@ def progress(work: Path, listing: dict) -> dict:
     return {"finished": sorted(finished), "under_way": dict(sorted(under_way.items()))}
 
 
+def _refuse_if_written(work: Path, partial_copy: Path | None = None) -> None:
+    live = live_writers(work)
+    if live:
+        if partial_copy is not None:
+            shutil.rmtree(partial_copy, ignore_errors=True)
+        raise CarryError(f"{work} is still being written by {describe(live, work)}: stop `bench paper` first "
+                         "(SIGTERM or Ctrl-C) and wait for its workers to save their checkpoints and exit; if the "
+                         "process named is not a benchmark (a pid reused after a reboot), delete that pid file")
+
+
 def carried_files(work: Path) -> Iterator[str]:
     """Paths (relative to `work`, POSIX) of the files a carry holds (module docstring)."""
     for name in TOP_FILES:
@@ -153,7 +159,7 @@ def _walk(work: Path, directory: Path) -> Iterator[str]:
             if run_dir and name in REMADE_DIRS:
                 continue
             if run_dir and name == RAY_STORAGE:
-                if not finished and _newest_checkpoint(path) is not None:
+                if not finished and newest_checkpoint_anywhere(path) is not None:
                     raise CarryError(f"{directory} is a stage under way on Ray Train (bench paper --workers N), "
                                      "whose checkpoints are not carried; carry it once that stage has finished, "
                                      "or run the benchmark in-process (--workers 0)")
@@ -176,7 +182,7 @@ def _resumed_checkpoint(root: Path) -> Path | None:
     return LocalCheckpointStore(root, keep=1).latest()
 
 
-def _newest_checkpoint(root: Path) -> Path | None:
+def newest_checkpoint_anywhere(root: Path) -> Path | None:
     """Any checkpoint (a folder with a readable state.json) of the highest step under `root`, at any depth (Ray
     Train nests its checkpoints one level further than the in-process loop): is a Ray stage under way?"""
     best, best_step = None, -1

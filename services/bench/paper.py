@@ -72,10 +72,13 @@ def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds:
     (may oversubscribe); rerun_changed: `out_dir` may hold a benchmark of another plan, whose stages that
     the change touches are redone (services.bench.replan) and the others kept; redo: stage-name patterns
     whose stages, and every stage downstream of them, are redone (after a code change)."""
-    from services.bench.running import BENCH_PID, running
+    from services.bench.running import BENCH_PID, refuse_if_written, running
 
     out = Path(out_dir)
-    with running(out / "work" / BENCH_PID):   # `bench carry save` refuses to copy the work dir meanwhile
+    # One run at a time in a work dir: a second one (or the first's workers, still saving their step after their
+    # parent was killed) would write the same stages. While it runs, `bench carry save` refuses to copy it.
+    refuse_if_written(out / "work", "bench paper")
+    with running(out / "work" / BENCH_PID):
         return _run_paper_bench(config, out, parallel_seeds=parallel_seeds, threads=threads,
                                 rerun_changed=rerun_changed, redo=redo, log=log)
 
@@ -125,12 +128,13 @@ def _run_paper_bench(config: BenchConfig, out: Path, *, parallel_seeds: int, thr
 
 def run_one_seed(out_dir: str | Path, seed: int, *, log: Callable[[str], None] = print) -> None:
     """Every stage of one seed, with the plan the parent wrote to OUT/work/plan.json (a seed worker)."""
-    from services.bench.running import WORKER_PID, running
+    from services.bench.running import WORKER_PID, refuse_if_written, running
 
     out = Path(out_dir)
     config = BenchConfig.from_dict(json.loads((out / "work" / "plan.json").read_text()))
     if seed not in config.seeds:
         raise BenchConfigError(f"seed {seed} is not in the plan's seeds {list(config.seeds)}")
+    refuse_if_written(out / "work" / f"seed{seed}", f"seed {seed}'s worker")
     with running(out / "work" / f"seed{seed}" / WORKER_PID):
         stages = StageRunner(out / "work", log)
         data = _record_data_stages(stages, config)

@@ -2,8 +2,9 @@
 
 Each `bench paper` process keeps OUT/work/bench.pid, and each seed worker OUT/work/seed<S>/worker.pid, while it
 runs (`running(path)`: written at the start, removed at the end, also on an exception or a stop by a signal).
-`live_writers(work)` lists those whose process is still alive, so that `bench carry save` never copies a work
-directory that a worker is still writing (a worker told to stop finishes its step and saves a checkpoint first,
+`live_writers(work)` lists those whose process is still alive: a second `bench paper` (or seed worker) on the same
+work directory is refused (`refuse_if_written`: it would write the same stages), and `bench carry save` never copies
+a work directory that a worker is still writing (a worker told to stop finishes its step and saves a checkpoint first,
 which takes up to a step's time: ~15 s at small). A pid file left by a process killed outright (SIGKILL) names
 a dead pid and is ignored.
 """
@@ -14,6 +15,8 @@ import os
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
+
+from core.errors import N3dmapError
 
 PID_SUFFIX = ".pid"
 BENCH_PID = "bench.pid"      # OUT/work/bench.pid: the `bench paper` process
@@ -36,6 +39,27 @@ def running(path: str | Path) -> Iterator[Path]:
                 path.unlink()
         except (OSError, ValueError):
             pass
+
+
+class RunInProgressError(N3dmapError):
+    """Another live process is writing the work directory."""
+
+
+def describe(writers: list[tuple[Path, int]], work: Path) -> str:
+    return ", ".join(f"pid {pid} ({path.relative_to(work)})" for path, pid in writers)
+
+
+def refuse_if_written(directory: str | Path, who: str) -> None:
+    """RunInProgressError if a live process other than this one keeps a pid file in `directory` (or one level
+    down): `who` would write the same stages at the same time."""
+    directory = Path(directory)
+    writers = live_writers(directory)
+    if writers:
+        raise RunInProgressError(
+            f"{directory} is being written by {describe(writers, directory)}: {who} would write the same stages. "
+            "Wait for that run to end, or stop it (SIGTERM or Ctrl-C; its workers save a checkpoint at their "
+            "step first, up to ~15 s); if the process named is not a benchmark (a pid reused after a reboot), "
+            "delete that pid file")
 
 
 def live_writers(work: str | Path) -> list[tuple[Path, int]]:

@@ -75,7 +75,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: seed {args.seed}: {e}", file=sys.stderr, flush=True)
         return 2
     except KeyboardInterrupt as e:  # SIGINT / SIGTERM: a training stage stops between steps, checkpoint saved
-        print(f"[bench] seed {args.seed}: stopped ({str(e) or 'interrupted'}); a rerun resumes it", flush=True)
+        # only our own interrupts' text (a TrainingInterrupted: where its checkpoint is), not CPython's
+        said = str(e) if type(e) is not KeyboardInterrupt else ""
+        print(f"[bench] seed {args.seed}: stopped ({said or 'interrupted'}); a rerun resumes it", flush=True)
         return STOPPED_EXIT
     return 0
 

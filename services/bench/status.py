@@ -38,6 +38,7 @@ def marker_of(stage: str) -> str:
 
 def bench_status(out_dir: str | Path) -> dict:
     """{"plan": {preset, seeds}, "stages": [{name, state, seconds, step, max_steps}], "counts": {state: n}}."""
+    from services.bench.carry import newest_checkpoint_anywhere
     from services.bench.plan import BenchConfig
     from services.bench.replan import _dry_run
     from services.training.checkpoints import LocalCheckpointStore, read_checkpoint_state
@@ -47,8 +48,9 @@ def bench_status(out_dir: str | Path) -> dict:
         config = BenchConfig.from_dict(json.loads((work / "plan.json").read_text()))
     except FileNotFoundError:
         raise BenchStatusError(f"{out_dir}: no benchmark here (no work/plan.json); give the --out of `bench paper`") from None
-    except ValueError as e:
-        raise BenchStatusError(f"{work / 'plan.json'}: not a benchmark plan ({e})") from None
+    except (ValueError, KeyError, TypeError) as e:
+        raise BenchStatusError(f"{work / 'plan.json'}: not a benchmark plan of this n3dmap ({type(e).__name__}: "
+                               f"{e})") from None
     rows = []
     for name in _dry_run(config, work).inputs:
         stage_dir = work / name
@@ -60,7 +62,8 @@ def bench_status(out_dir: str | Path) -> dict:
             row["state"] = "under way"
             row["seconds"] = _seconds(stage_dir / PARTIAL)
             if marker_of(name) == TRAIN_MARKER:
-                latest = LocalCheckpointStore(stage_dir / "checkpoints", keep=1).latest()
+                latest = (LocalCheckpointStore(stage_dir / "checkpoints", keep=1).latest()
+                          or newest_checkpoint_anywhere(stage_dir / "ray_train"))   # a stage on Ray Train
                 row["step"] = read_checkpoint_state(latest).step if latest is not None else 0
                 rule = RULE_OF_PREFIX.get(name.split("/")[-1].split("_")[0])
                 row["max_steps"] = getattr(config.rules, rule).max_steps if rule else None

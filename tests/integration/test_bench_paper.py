@@ -353,3 +353,38 @@ def test_a_carried_run_restored_elsewhere_continues_where_it_stopped(bench_run, 
     continued = json.loads((restored / "metrics.json").read_text())["metrics"]
     for key in ("detection", "retrieval", "flow", "moving", "occupancy", "egomotion", "claims", "per_seed"):
         assert continued[key] == original[key], key
+
+
+def test_sigterm_to_the_bench_stops_its_workers_and_a_second_run_meanwhile_is_refused(bench_run, tmp_path):
+    """SIGTERM to `bench paper` stops it as Ctrl-C does: exit 130 with one line, its seed workers stopped and
+    waited for, no pid file left; while it ran, a second `bench paper` on the same --out was refused by name."""
+    import os
+    import signal
+    import time
+
+    out, _ = bench_run
+    copy = tmp_path / "report"
+    shutil.copytree(out, copy)
+    cmd = [sys.executable, "-m", "services.cli.main", "bench", "paper", "--preset", "tiny", "--quick", "--seeds", "2",
+           "--parallel-seeds", "2", "--out", str(copy), "--device", "cpu", "--task-options", json.dumps(TASK_OPTIONS)]
+    proc = subprocess.Popen([*cmd, "--redo", "seed1/egomotion"], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    log = copy / "work" / "seed1" / "worker.log"
+    size = log.stat().st_size
+    try:
+        deadline = time.monotonic() + 120
+        while "[bench] seed1/egomotion: running" not in log.read_text()[size:]:
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        second = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert second.returncode == 2 and "Traceback" not in second.stderr, second.stderr[-2000:]
+        assert f"is being written by pid {proc.pid} (bench.pid)" in second.stderr
+        os.kill(proc.pid, signal.SIGTERM)
+        _, stderr = proc.communicate(timeout=180)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130 and stderr.strip().splitlines()[-1] == "n3dmap bench: interrupted", stderr[-2000:]
+    assert "[bench] seed 1: stopped (" in log.read_text()[size:]
+    assert not list((copy / "work").rglob("*.pid"))   # workers waited for, the parent's own file removed

@@ -6,7 +6,9 @@ import subprocess
 import sys
 import time
 
-from services.bench.running import live_writers, running
+import pytest
+
+from services.bench.running import RunInProgressError, live_writers, refuse_if_written, running
 
 
 def test_a_pid_file_is_kept_while_the_block_runs_and_removed_after_it_even_on_an_error(tmp_path):
@@ -54,3 +56,19 @@ def test_live_writers_lists_live_processes_only(tmp_path):
         if child.poll() is None:
             child.kill()
             child.wait()
+
+
+def test_a_second_writer_is_refused_naming_the_first(tmp_path):
+    work = tmp_path / "work"
+    refuse_if_written(work, "bench paper")   # nothing there yet: fine
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (work / "seed0").mkdir(parents=True)
+        (work / "seed0" / "worker.pid").write_text(f"{other.pid}\n")
+        with pytest.raises(RunInProgressError, match=rf"being written by pid {other.pid} \(seed0/worker.pid\): bench paper"):
+            refuse_if_written(work, "bench paper")
+        refuse_if_written(work / "seed1", "seed 1's worker")   # another seed's worker does not stop this one
+    finally:
+        other.kill()
+        other.wait()
+    refuse_if_written(work, "bench paper")   # its process gone, its file no longer counts

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from services.bench.plan import plan_for
+from services.bench.plan import plan_for, with_steps
 from services.bench.replan import stage_digests
 from services.bench.status import bench_status, format_status
 
@@ -18,9 +18,19 @@ def _write(path: Path, value) -> None:
     path.write_text(value if isinstance(value, str) else json.dumps(value))
 
 
+def _config():
+    # a bound of its own per rule, so that a stage read under the wrong rule shows
+    return with_steps(plan_for("tiny", seeds=(0, 1), quick=True), pretrain=11, detector=12, flow=13, egomotion=14,
+                      occupancy=15)
+
+
+def _checkpoint(root: Path, step: int) -> None:
+    _write(root / f"checkpoint_{step:08d}" / "state.json", {"step": step, "config": {}})
+
+
 @pytest.fixture
 def out(tmp_path) -> Path:
-    config = plan_for("tiny", seeds=(0, 1), quick=True)
+    config = _config()
     work = tmp_path / "report" / "work"
     _write(work / "plan.json", config.to_dict())
     for split in ("train", "test", "val"):
@@ -37,22 +47,29 @@ def out(tmp_path) -> Path:
     _write(s0 / "eval" / "retrieval" / "random" / "metrics.json", {})
     _write(s0 / "eval" / "retrieval" / "random" / "stage.json", {"seconds": 3.0})
     _write(work / "seed1" / "eval" / "flow" / "volume" / "stage.partial.json", {"seconds": 2.0})  # an evaluation stopped
+    _checkpoint(work / "seed1" / "flow_volume" / "checkpoints", 5)
+    _checkpoint(work / "seed1" / "occupancy_contrastive" / "checkpoints", 3)
+    _checkpoint(work / "seed1" / "detector_regression_frozen_L2" / "checkpoints", 4)
+    _checkpoint(work / "seed1" / "egomotion" / "ray_train" / "run" / "checkpoint_000000", 7)   # on Ray Train
     return tmp_path / "report"
 
 
 def test_every_stage_of_the_plan_is_listed_once_with_its_state(out):
-    config = plan_for("tiny", seeds=(0, 1), quick=True)
+    config = _config()
     status = bench_status(out)
     rows = {r["name"]: r for r in status["stages"]}
     assert list(rows) == list(stage_digests(config, out / "work"))   # the plan's stages, in its order
     finished = {"data/train", "data/test", "data/val", "seed0/pretrain_regression", "seed0/eval/retrieval/random"}
-    under_way = {"seed0/pretrain_contrastive", "seed1/eval/flow/volume"}
+    under_way = {"seed0/pretrain_contrastive", "seed1/eval/flow/volume", "seed1/flow_volume",
+                 "seed1/occupancy_contrastive", "seed1/detector_regression_frozen_L2", "seed1/egomotion"}
     assert {n for n, r in rows.items() if r["state"] == "finished"} == finished
     assert {n for n, r in rows.items() if r["state"] == "under way"} == under_way
-    assert status["counts"] == {"finished": 5, "under way": 2, "to run": len(rows) - 7}
+    assert status["counts"] == {"finished": 5, "under way": 6, "to run": len(rows) - 11}
+    assert [(rows[n]["step"], rows[n]["max_steps"]) for n in ("seed1/flow_volume", "seed1/occupancy_contrastive",
+            "seed1/detector_regression_frozen_L2", "seed1/egomotion")] == [(5, 13), (3, 15), (4, 12), (7, 14)]
     assert rows["seed0/pretrain_regression"]["seconds"] == 100.0
     going = rows["seed0/pretrain_contrastive"]
-    assert (going["step"], going["max_steps"], going["seconds"]) == (2, config.rules.pretrain.max_steps, 40.0)
+    assert (going["step"], going["max_steps"], going["seconds"]) == (2, 11, 40.0)
     stopped_eval = rows["seed1/eval/flow/volume"]
     assert (stopped_eval["step"], stopped_eval["seconds"]) == (None, 2.0)
 
@@ -60,11 +77,12 @@ def test_every_stage_of_the_plan_is_listed_once_with_its_state(out):
 def test_the_summary_says_per_seed_what_is_under_way_and_what_runs_next(out):
     text = format_status(bench_status(out), "R")
     lines = text.splitlines()
-    assert lines[0].startswith("bench R: preset tiny, seeds [0, 1]: 5 of ") and "2 under way" in lines[0]
+    assert lines[0].startswith("bench R: preset tiny, seeds [0, 1]: 5 of ") and "6 under way" in lines[0]
     assert lines[1] == "  data: 3 of 3 finished"
     assert lines[2].startswith("  seed0: 2 of ") and "under way: pretrain_contrastive at step 2 (its rule stops by " in lines[2]
     assert "40 s in stopped attempts" in lines[2] and "next to run: detector_random_finetuned_L2" in lines[2]
     assert "under way: eval/flow/volume, 2 s in stopped attempts" in lines[3] and "next to run: pretrain_regression" in lines[3]
+    assert "under way: flow_volume at step 5 (its rule stops by 13)" in lines[3]
 
 
 def test_no_benchmark_is_one_line_exit_2(tmp_path, capsys):
@@ -73,3 +91,12 @@ def test_no_benchmark_is_one_line_exit_2(tmp_path, capsys):
     assert main(["bench", "status", "--out", str(tmp_path / "nothing")]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"n3dmap bench: error: {tmp_path / 'nothing'}: no benchmark here (no work/plan.json); give the --out of `bench paper`"
+
+
+def test_a_plan_of_an_older_n3dmap_is_one_line_exit_2(tmp_path, capsys):
+    from services.cli.main import main
+
+    _write(tmp_path / "work" / "plan.json", {"preset": "tiny", "seeds": [0]})   # no "rules"
+    assert main(["bench", "status", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "not a benchmark plan of this n3dmap" in err and "Traceback" not in err
