@@ -37,15 +37,38 @@ TASK_OPTIONS = {"mapper": {"encoder_full_res": 4}, "pretrain": {"coeff_match": 0
                 "flow_features": {"refine_radius": [2, 1, 2], "refine_aggregate": [1, 1, 1]}}
 
 
+def _bench_cmd(out: Path, options: dict = TASK_OPTIONS) -> list[str]:
+    return [sys.executable, "-m", "services.cli.main", "bench", "paper", "--preset", "tiny", "--quick", "--seeds", "2",
+            "--parallel-seeds", "2", "--out", str(out), "--device", "cpu", "--task-options", json.dumps(options)]
+
+
 def _bench(out: Path, *, options: dict = TASK_OPTIONS, extra: tuple[str, ...] = (),
            check: bool = True) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "services.cli.main", "bench", "paper", "--preset", "tiny", "--quick",
-           "--seeds", "2", "--parallel-seeds", "2", "--out", str(out), "--device", "cpu",
-           "--task-options", json.dumps(options), *extra]
-    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run([*_bench_cmd(out, options), *extra], cwd=ROOT, capture_output=True, text=True, timeout=600)
     if check:
         assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return proc
+
+
+def _rerun_seed1_egomotion_until_it_trains(out: Path) -> tuple[subprocess.Popen, Path, int]:
+    """Start `bench paper --redo seed1/egomotion` on `out` and return (process, seed 1's worker log, the log's
+    size before it) once that stage is running in its worker."""
+    import time
+
+    proc = subprocess.Popen([*_bench_cmd(out), "--redo", "seed1/egomotion"], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    log = out / "work" / "seed1" / "worker.log"
+    size = log.stat().st_size
+    deadline = time.monotonic() + 120
+    try:
+        while "[bench] seed1/egomotion: running" not in log.read_text()[size:]:
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+    except BaseException:
+        proc.kill()
+        proc.wait()
+        raise
+    return proc, log, size
 
 
 @pytest.fixture(scope="module")
@@ -261,22 +284,12 @@ def test_occupancy_and_egomotion_stages_export_their_weight_average(bench_run):
 def test_a_seed_worker_stopped_by_a_signal_is_reported_as_resumable_and_the_rerun_finishes(bench_run, tmp_path):
     import os
     import signal
-    import time
 
     out, _ = bench_run
     copy = tmp_path / "report"
     shutil.copytree(out, copy)
-    cmd = [sys.executable, "-m", "services.cli.main", "bench", "paper", "--preset", "tiny", "--quick", "--seeds", "2",
-           "--parallel-seeds", "2", "--out", str(copy), "--device", "cpu", "--task-options", json.dumps(TASK_OPTIONS),
-           "--redo", "seed1/egomotion"]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    log = copy / "work" / "seed1" / "worker.log"
-    size = log.stat().st_size
+    proc, log, size = _rerun_seed1_egomotion_until_it_trains(copy)
     try:
-        deadline = time.monotonic() + 120
-        while "[bench] seed1/egomotion: running" not in log.read_text()[size:]:
-            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
-            time.sleep(0.05)
         children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
         pid = next(int(c) for c in children if "--seed\x001\x00" in Path(f"/proc/{c}/cmdline").read_text())
         # while it runs, its work dir cannot be carried away
@@ -360,23 +373,13 @@ def test_sigterm_to_the_bench_stops_its_workers_and_a_second_run_meanwhile_is_re
     waited for, no pid file left; while it ran, a second `bench paper` on the same --out was refused by name."""
     import os
     import signal
-    import time
 
     out, _ = bench_run
     copy = tmp_path / "report"
     shutil.copytree(out, copy)
-    cmd = [sys.executable, "-m", "services.cli.main", "bench", "paper", "--preset", "tiny", "--quick", "--seeds", "2",
-           "--parallel-seeds", "2", "--out", str(copy), "--device", "cpu", "--task-options", json.dumps(TASK_OPTIONS)]
-    proc = subprocess.Popen([*cmd, "--redo", "seed1/egomotion"], cwd=ROOT, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    log = copy / "work" / "seed1" / "worker.log"
-    size = log.stat().st_size
+    proc, log, size = _rerun_seed1_egomotion_until_it_trains(copy)
     try:
-        deadline = time.monotonic() + 120
-        while "[bench] seed1/egomotion: running" not in log.read_text()[size:]:
-            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
-            time.sleep(0.05)
-        second = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
+        second = subprocess.run(_bench_cmd(copy), cwd=ROOT, capture_output=True, text=True, timeout=120)
         assert second.returncode == 2 and "Traceback" not in second.stderr, second.stderr[-2000:]
         assert f"is being written by pid {proc.pid} (bench.pid)" in second.stderr
         os.kill(proc.pid, signal.SIGTERM)
