@@ -27,7 +27,6 @@ checkpoint at the step they are in).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -35,6 +34,7 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator
 
+from core.data.shards import sha256_file
 from core.errors import N3dmapError
 from services.bench.running import PID_SUFFIX, describe, live_writers
 from services.bench.stages import write_json
@@ -79,7 +79,7 @@ def save_carry(out_dir: str | Path, carry_dir: str | Path, *, log: Callable[[str
         target = tmp / "work" / rel
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(work / rel, target)
-        listing[rel] = {"bytes": target.stat().st_size, "sha256": _sha256(target)}
+        listing[rel] = {"bytes": target.stat().st_size, "sha256": sha256_file(target)}
     manifest = {"format": CARRY_FORMAT, "version": CARRY_VERSION, "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
                 "progress": progress(work, listing), "data": data, "files": listing}
     _refuse_if_written(work, tmp)   # a run started while we copied: the copy may be half old, half new
@@ -214,7 +214,7 @@ def restore_carry(carry_dir: str | Path, out_dir: str | Path, *, log: Callable[[
         source = carry / "work" / rel
         if not source.is_file():
             raise CarryError(f"{carry}: carried file work/{rel} is missing")
-        if source.stat().st_size != info["bytes"] or _sha256(source) != info["sha256"]:
+        if source.stat().st_size != info["bytes"] or sha256_file(source) != info["sha256"]:
             raise CarryError(f"{carry}: carried file work/{rel} does not match its sha256 in {CARRY_MANIFEST} "
                              "(changed or truncated since it was saved)")
     tmp = work.with_name(work.name + ".restoring")
@@ -290,11 +290,3 @@ def read_carry_manifest(carry: Path) -> dict:
                                                   for s in shards):
             raise CarryError(f"{path}: data[{split!r}] needs a 'shards' list of {{filename, sha256}}")
     return manifest
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()

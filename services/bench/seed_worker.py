@@ -18,6 +18,8 @@ import sys
 import threading
 import time
 
+from services.training.stop_signal import interrupt_text, raise_keyboard_interrupt
+
 
 def exit_with_parent(parent: int | None = None, poll_s: float = 2.0) -> threading.Thread:
     """Terminate this process (SIGTERM, as the parent's own clean-up would) once its parent — pid `parent`
@@ -43,10 +45,6 @@ def exit_with_parent(parent: int | None = None, poll_s: float = 2.0) -> threadin
 STOPPED_EXIT = 130  # stopped by SIGINT / SIGTERM: nothing failed, a rerun resumes (services.bench.paper reads it)
 
 
-def _raise_keyboard_interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m services.bench.seed_worker", description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True, help="the benchmark's REPORT_DIR")
@@ -61,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     exit_with_parent(args.parent_pid)
     # SIGTERM outside a training stage (an evaluation, a data stage) ends the worker as Ctrl-C would, with
     # the same line and exit status; inside one, graceful_stop takes it over and stops between two steps.
-    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    signal.signal(signal.SIGTERM, raise_keyboard_interrupt)
     import torch
 
     from core.errors import N3dmapError
@@ -75,9 +73,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: seed {args.seed}: {e}", file=sys.stderr, flush=True)
         return 2
     except KeyboardInterrupt as e:  # SIGINT / SIGTERM: a training stage stops between steps, checkpoint saved
-        # only our own interrupts' text (a TrainingInterrupted: where its checkpoint is), not CPython's
-        said = str(e) if type(e) is not KeyboardInterrupt else ""
-        print(f"[bench] seed {args.seed}: stopped ({said or 'interrupted'}); a rerun resumes it", flush=True)
+        print(f"[bench] seed {args.seed}: stopped ({interrupt_text(e) or 'interrupted'}); a rerun resumes it",
+              flush=True)
         return STOPPED_EXIT
     return 0
 

@@ -194,20 +194,17 @@ def config_from_args(args: argparse.Namespace):
     return with_steps(config, **steps) if steps else config
 
 
-def _raise_keyboard_interrupt(signum, frame) -> None:
-    raise KeyboardInterrupt
-
-
 def run(args: argparse.Namespace) -> int:
     import signal
 
     from services.bench.paper import run_paper_bench
     from services.threads import usable_cpus
+    from services.training.stop_signal import raise_keyboard_interrupt
 
     # SIGTERM stops the run as Ctrl-C does: its seed workers are told to stop and waited for (each saves a
     # checkpoint at its step), its pid file goes; without this the process died at once and left both to chance.
     # A training stage in this process takes SIGTERM over while it trains (services/training/stop_signal.py).
-    signal.signal(signal.SIGTERM, _raise_keyboard_interrupt)
+    signal.signal(signal.SIGTERM, raise_keyboard_interrupt)
     config = config_from_args(args)
     parallel = args.parallel_seeds if args.parallel_seeds is not None else min(len(config.seeds), usable_cpus())
     metrics = run_paper_bench(config, args.out, parallel_seeds=parallel, threads=args.threads,

@@ -78,10 +78,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"n3dmap {args.command}: error: {_one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as e:
-        # Our own subclasses (a TrainingInterrupted) say where the checkpoint is. A plain Ctrl-C says nothing
-        # more: its text, if any, is CPython's (a Ctrl-C inside a codec comes back as "decoding with 'cp437'
-        # codec failed (KeyboardInterrupt: )"), not ours.
-        said = _one_line(e) if type(e) is not KeyboardInterrupt else ""
+        from services.training.stop_signal import interrupt_text
+
+        said = " ".join(interrupt_text(e).split())
         print(f"n3dmap {args.command}: interrupted" + (f": {said}" if said else ""), file=sys.stderr)
         return 130
     return int(result or 0)

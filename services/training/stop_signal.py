@@ -26,6 +26,19 @@ from typing import Callable, Iterator
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
+def raise_keyboard_interrupt(signum, frame) -> None:
+    """A signal handler that makes SIGTERM stop a process as Ctrl-C does (graceful_stop takes it over while a
+    training stage runs)."""
+    raise KeyboardInterrupt
+
+
+def interrupt_text(error: KeyboardInterrupt) -> str:
+    """What an interrupt says about itself: our own subclasses' text (a TrainingInterrupted says where its
+    checkpoint is), nothing for a plain Ctrl-C, whose text if any is CPython's (a Ctrl-C inside a codec comes back
+    as "decoding with 'cp437' codec failed (KeyboardInterrupt: )")."""
+    return str(error) if type(error) is not KeyboardInterrupt else ""
+
+
 def never() -> str | None:
     """The `stop_requested` of a run nothing can stop (Ray workers; tests)."""
     return None
