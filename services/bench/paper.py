@@ -73,8 +73,10 @@ def run_paper_bench(config: BenchConfig, out_dir: str | Path, *, parallel_seeds:
     the change touches are redone (services.bench.replan) and the others kept; redo: stage-name patterns
     whose stages, and every stage downstream of them, are redone (after a code change)."""
     from services.bench.running import BENCH_PID, refuse_if_written, running
+    from services.bench.task_options import check_task_options
 
     out = Path(out_dir)
+    check_task_options(config, out / "work")   # before anything is written: a typo must not cost the data stages
     # One run at a time in a work dir: a second one (or the first's workers, still saving their step after their
     # parent was killed) would write the same stages. While it runs, `bench carry save` refuses to copy it.
     refuse_if_written(out / "work", "bench paper")

@@ -42,6 +42,7 @@ class StageRunner:
     dry: bool = False                                          # record digests only; run and create nothing
     digests: dict[str, str] = field(default_factory=dict)      # stage -> digest of its spec and its inputs'
     inputs: dict[str, tuple[str, ...]] = field(default_factory=dict)  # stage -> the stages whose outputs it reads
+    specs: dict[str, dict] = field(default_factory=dict)      # stage -> the spec its digest covers (task, options…)
 
     def __post_init__(self) -> None:
         self.work = Path(self.work)
@@ -64,6 +65,7 @@ class StageRunner:
         # the name too: it carries the seed and what an evaluation computes (two evaluations may read the same)
         self.digests[name] = stage_digest({"stage": name, **(spec or {})}, [self.digests[a] for a in after])
         self.inputs[name] = tuple(after)
+        self.specs[name] = dict(spec or {})
         return self.digests[name]
 
     def run(self, name: str, marker: str, fn: Callable[[Path], None], *, spec: Mapping | None = None,

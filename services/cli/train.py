@@ -64,7 +64,8 @@ def add_common_train_args(parser: argparse.ArgumentParser) -> None:
     ray.add_argument("--cpus-per-worker", type=int, default=1,
                      help="CPUs Ray reserves per worker (on a cluster also its torch threads; on the embedded Ray "
                           "the usable CPUs are shared out so that workers × threads never exceeds them)")
-    ray.add_argument("--gpus-per-worker", type=float, default=0.0)
+    ray.add_argument("--gpus-per-worker", type=float, default=0.0,
+                     help="GPUs Ray reserves per worker, fractions allowed (default 0: none; with --device cuda)")
     ray.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     ray.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
                      help="bf16: each forward under bfloat16 autocast on the run's device (CPU or CUDA); "

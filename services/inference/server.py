@@ -15,7 +15,7 @@ import signal
 import socket
 import sys
 from contextlib import asynccontextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from grpc_health.v1 import health_pb2
@@ -120,6 +120,15 @@ def run(settings: ServeSettings) -> int:
     check_port_free(settings.host, settings.http_port, "--http-port")
     check_port_free(settings.host, settings.grpc_port, "--grpc-port")
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    sockets = None
+    if settings.http_port == 0:
+        # Any free port: bound here, before the app is built, because the startup line (printed from the
+        # lifespan, which uvicorn runs before it binds) must name the port the OS chose, not 0.
+        try:
+            sock = uvicorn.Config(app=None, host=settings.host, port=0).bind_socket()
+        except SystemExit:  # uvicorn's bind_socket logs the OSError and exits 3
+            raise ServeStartError(f"--http-port 0: no free port could be bound on {settings.host}") from None
+        settings, sockets = replace(settings, http_port=sock.getsockname()[1]), [sock]
     runtime = Runtime(settings.runtime)
     app = build_app(settings, runtime)
     config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level=settings.log_level,
@@ -127,7 +136,7 @@ def run(settings: ServeSettings) -> int:
                             timeout_graceful_shutdown=int(settings.drain_s) or None, lifespan="on")
     server = _server_class()(config)
     try:
-        server.run()
+        server.run(sockets=sockets)
     except SystemExit as e:  # uvicorn exits 3 when startup fails (a port taken since the check above)
         raise ServeStartError(f"the server did not start (uvicorn exit status {e.code}); see the log above") from None
     # uvicorn returns normally when startup fails (port taken, gRPC bind error): say so by status.

@@ -153,6 +153,14 @@ def ray_train_func(loop_config: dict) -> dict:
         return LoopOutcome(status="error", step=-1, start_step=-1, message=str(e)).to_dict()
 
 
+def embedded_ray_defaults() -> None:
+    """The embedded Ray reports no usage statistics unless the user opted in (RAY_USAGE_STATS_ENABLED=1 set
+    before the run): it is a private, throw-away cluster on the user's machine, and n3dmap keeps the Rerun
+    viewer's analytics off by the same rule (README, "3D viewer (Rerun)"). Ray reads the variable when its
+    head starts, inside `ray.init`."""
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+
+
 def _init_ray(config: TrainJobConfig) -> bool:
     """Start an embedded Ray (or attach to the surrounding cluster). Returns True if we started one."""
     import ray
@@ -164,6 +172,7 @@ def _init_ray(config: TrainJobConfig) -> bool:
         # No runtime_env here: the job's own (its uploaded working_dir) must reach every node.
         ray.init(address="auto", log_to_driver=False)
         return True
+    embedded_ray_defaults()
     # Workers import `core`/`services` from this checkout even when n3dmap is not pip-installed.
     pythonpath = os.pathsep.join(p for p in (str(PROJECT_ROOT), os.environ.get("PYTHONPATH")) if p)
     runtime_env = {"env_vars": {"PYTHONPATH": pythonpath}}

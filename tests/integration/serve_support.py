@@ -7,6 +7,7 @@ PID (SIGTERM, then SIGKILL if it does not exit).
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -17,6 +18,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
+# services/inference/server.py's startup line: "n3dmap serve: bundle V on D; REST http://H:P  gRPC H:P  routes: …"
+STARTUP_LINE = re.compile(r"n3dmap serve: bundle .*; REST https?://[^\s]+:(?P<http>\d+)  gRPC [^\s]+:(?P<grpc>\d+)")
 
 
 def free_port() -> int:
@@ -94,8 +97,13 @@ class ServerProcess:
     """`n3dmap serve` in a subprocess; `with ServerProcess(bundle, ...) as s:` waits until ready."""
 
     def __init__(self, bundle: Path, *extra: str, token: str | None = None, ready_timeout_s: float = 120.0,
-                 log_path: Path | None = None):
-        self.http_port, self.grpc_port = free_port(), free_port()
+                 log_path: Path | None = None, os_ports: bool = False):
+        """os_ports: pass `--http-port 0 --grpc-port 0` and read the ports the server chose from its startup
+        line (needs `log_path`)."""
+        if os_ports and log_path is None:
+            raise ValueError("os_ports needs log_path: the ports are read from the server's startup line")
+        self.os_ports = os_ports
+        self.http_port, self.grpc_port = (0, 0) if os_ports else (free_port(), free_port())
         self.token = token
         args = [sys.executable, "-m", "services.cli.main", "serve", "--bundle", str(bundle),
                 "--http-port", str(self.http_port), "--grpc-port", str(self.grpc_port), "--threads", "1",
@@ -131,6 +139,12 @@ class ServerProcess:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"server exited with {self.proc.returncode} before it was ready: "
                                    f"{self.read_log()[-3000:]}")
+            if self.os_ports and self.http_port == 0:
+                started = STARTUP_LINE.search(self.read_log())
+                if started is None:
+                    time.sleep(0.2)
+                    continue
+                self.http_port, self.grpc_port = int(started["http"]), int(started["grpc"])
             try:
                 if httpx.get(self.url + "/readyz", timeout=1.0).status_code == 200:
                     return

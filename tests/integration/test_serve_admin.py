@@ -166,3 +166,15 @@ def test_sigterm_drains_in_flight_requests_then_exits(server):
     assert server.proc.wait(60) == 0
     with pytest.raises(httpx.HTTPError):
         httpx.get(server.url + "/healthz", timeout=2)
+
+
+def test_port_zero_serves_on_the_ports_the_startup_line_names(bundles):
+    """`--http-port 0 --grpc-port 0`: the OS picks both ports and the startup line names them (not 0)."""
+    from services.inference.client import GrpcClient
+
+    with ServerProcess(bundles["mapper_only"], os_ports=True, log_path=bundles["tmp"] / "os_ports.log") as s:
+        assert s.http_port > 0 and s.grpc_port > 0 and s.http_port != s.grpc_port
+        assert httpx.get(s.url + "/readyz").status_code == 200
+        with GrpcClient(s.target) as g:
+            assert g.health()["status"] == "SERVING"
+            assert "mapper" in g.models()["modules"]

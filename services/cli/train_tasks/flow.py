@@ -19,8 +19,10 @@ def register(tasks) -> None:
                     "learning rate is the preset's flow rate (the paper's 1e-4 at the paper preset).")
     parser.add_argument("--inputs", choices=("volume", "features"), default="volume",
                         help="what the module compares: input volumes (default) or mapper features")
-    parser.add_argument("--warp-weight", type=float, default=1.0)
-    parser.add_argument("--smooth-weight", type=float, default=0.05)
+    parser.add_argument("--warp-weight", type=float, default=1.0,
+                        help="weight of the real pair's 3D feature-constancy loss over occupied voxels (default 1)")
+    parser.add_argument("--smooth-weight", type=float, default=0.05,
+                        help="weight of the real pair's flow smoothness loss, mean |grad flow| (default 0.05)")
     parser.add_argument("--radius", type=non_negative_int, nargs=3, default=None, metavar=("RX", "RY", "RZ"),
                         help="cost-volume window in voxels (x, y, z) at every level (default 1 1 1; 2 1 2 "
                              "measured better over matching-trained features, docs/findings.md)")

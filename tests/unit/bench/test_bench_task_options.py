@@ -156,3 +156,46 @@ def test_the_random_arm_has_the_trained_arms_architecture():
     shapes = {name: {k: v.shape for k, v in m.state_dict().items()} for name, m in trained.items()}
     assert {name: {k: v.shape for k, v in m.state_dict().items()} for name, m in random.modules.items()} == shapes
     assert {name: {k: v.shape for k, v in m.state_dict().items()} for name, m in default.modules.items()} != shapes
+
+
+# The recipe the small report's regeneration runs with (carry/bench-paper-small/continue.sh).
+RECIPE = {"mapper": {"encoder_full_res": 16}, "pretrain": {"coeff_match": 1.0, "coeff_occ": 3.0},
+          "pretrain_contrastive": {"shift_positives": 3},
+          "flow_features": {"refine_radius": [3, 1, 3], "refine_aggregate": [1, 1, 1]}}
+
+
+def test_every_training_stage_is_checked_with_the_options_it_will_get(tmp_path, monkeypatch):
+    import core.tasks
+    from services.bench.task_options import check_task_options
+
+    built = []
+    real = core.tasks.build_task
+    monkeypatch.setattr(core.tasks, "build_task", lambda task, preset, **o: built.append((task, o)) or real(task, preset, **o))
+    config = plan_for("tiny", quick=True, seeds=(0, 1), task_options=RECIPE)
+    check_task_options(config, tmp_path / "work")
+    expected = [("pretrain", config.stage_options("pretrain", {"objective": "contrastive"})),
+                ("pretrain", config.stage_options("pretrain", {"objective": "regression"})),
+                ("occupancy", config.stage_options("occupancy", {})),
+                ("flow", config.stage_options("flow_features", {"inputs": "features"})),
+                ("flow", config.stage_options("flow_volume", {"inputs": "volume"}))]
+    for task, options in expected:
+        assert (task, options) in built, (task, options)
+    assert any(task == "detector" for task, _ in built) and any(task == "egomotion" for task, _ in built)
+    # each distinct (task, options) once, however many seeds and label draws share it
+    assert len(built) == len({(t, json.dumps(o, sort_keys=True)) for t, o in built})
+    assert not (tmp_path / "work").exists()
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"pretrain": {"coef_match": 1.0}}, r"stage seed0/pretrain_\w+ \(task pretrain\).*coef_match"),
+    ({"occupancy": {"coeff_match": 1.0}}, r"stage seed0/occupancy_contrastive \(task occupancy\).*coeff_match"),
+    ({"flow_features": {"refine_radius": [3, 1]}}, r"stage seed0/flow_\w+ \(task flow\).*refine_radius"),
+    ({"detector": {"bogus": 2}}, r"stage seed0/detector_.*bogus"),
+])
+def test_a_field_a_task_refuses_stops_the_run_before_anything_is_written(tmp_path, options, message):
+    from services.bench.paper import run_paper_bench
+
+    config = plan_for("tiny", quick=True, seeds=(0,), task_options=options)   # the kinds are valid: accepted
+    with pytest.raises(BenchConfigError, match=message):
+        run_paper_bench(config, tmp_path / "r", log=lambda _: None)
+    assert not (tmp_path / "r").exists()

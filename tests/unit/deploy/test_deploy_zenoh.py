@@ -99,7 +99,7 @@ def _wait_for(condition, timeout: float = 5.0) -> bool:
 def test_tls_acl_router_enforces_the_roles(tmp_path):
     from services.streaming.session import ZenohOptions, open_session
 
-    roles = ["router", "camera", "bridge", "listener"]
+    roles = ["router", "camera", "bridge", "listener", "viewer"]
     _make_certificates(tmp_path, roles)
     port = _free_port()
     text = TLS_CONFIG.read_text().replace("/etc/zenoh-certs", str(tmp_path))
@@ -109,10 +109,10 @@ def test_tls_acl_router_enforces_the_roles(tmp_path):
     try:
         # The clients open sessions exactly as `n3dmap stream ... --mode client --connect ENDPOINT` does;
         # two listeners so that one can watch what the other tries to forge.
-        for name in ("camera", "bridge", "listener", "listener2"):
+        for name in ("camera", "bridge", "listener", "listener2", "viewer"):
             cert = "listener" if name == "listener2" else name
             sessions[name] = open_session(ZenohOptions(mode="client", connect=(_client_endpoint(port, tmp_path, cert),)))
-        received: dict[str, list[bytes]] = {"bridge": [], "listener": []}
+        received: dict[str, list[bytes]] = {"bridge": [], "listener": [], "viewer": []}
         lock = threading.Lock()
 
         def collect(who):
@@ -122,7 +122,8 @@ def test_tls_acl_router_enforces_the_roles(tmp_path):
             return on_sample
 
         subs = [sessions["bridge"].declare_subscriber("n3dmap/*/rgbd", collect("bridge")),
-                sessions["listener"].declare_subscriber("n3dmap/*/moving_objects", collect("listener"))]
+                sessions["listener"].declare_subscriber("n3dmap/*/moving_objects", collect("listener")),
+                sessions["viewer"].declare_subscriber("n3dmap/cam0/*", collect("viewer"))]   # as `stream view`
         token = sessions["bridge"].liveliness().declare_token("n3dmap/@bridge/b1")
         status = sessions["bridge"].declare_queryable("n3dmap/@bridge/b1/status",
                                                       lambda q: q.reply(q.key_expr, b'{"frames": 1}'))
@@ -134,17 +135,23 @@ def test_tls_acl_router_enforces_the_roles(tmp_path):
             "frames from the camera do not reach the bridge"
         assert _wait_for(lambda: (sessions["bridge"].put("n3dmap/cam0/moving_objects", b"boxes") or True)
                          and b"boxes" in received["listener"]), "results from the bridge do not reach the listener"
+        assert _wait_for(lambda: b"frame" in received["viewer"] and b"boxes" in received["viewer"]), \
+            f"the viewer does not get both frames and results: {received['viewer']}"
+        assert _wait_for(lambda: any(r.ok for r in sessions["viewer"].liveliness().get("n3dmap/@bridge/*", timeout=1.0))), \
+            "the viewer cannot see the bridge's liveliness token"
         replies = [r.ok.payload.to_bytes() for r in sessions["listener"].get("n3dmap/@bridge/*/status", timeout=2.0) if r.ok]
         assert replies == [b'{"frames": 1}'], f"the listener cannot query the bridge's status: {replies}"
         # Forgeries are dropped by the router.
         sessions["listener2"].put("n3dmap/cam0/rgbd", b"forged frame")
         sessions["camera"].put("n3dmap/cam0/moving_objects", b"forged boxes (camera)")
         sessions["listener2"].put("n3dmap/cam0/moving_objects", b"forged boxes (listener)")
+        sessions["viewer"].put("n3dmap/cam0/rgbd", b"forged frame")
+        sessions["viewer"].put("n3dmap/cam0/moving_objects", b"forged boxes (viewer)")
         sessions["bridge"].put("n3dmap/cam0/moving_objects", b"after")    # ordered after the forgeries
         assert _wait_for(lambda: b"after" in received["listener"])
         time.sleep(0.3)
         with lock:
-            assert b"forged frame" not in received["bridge"], "a listener could publish frames"
+            assert b"forged frame" not in received["bridge"], "a listener or viewer could publish frames"
             forged = [p for p in received["listener"] if p.startswith(b"forged")]
         assert not forged, f"the router let through {forged}"
         for declared in (*subs, token, status):
