@@ -62,10 +62,11 @@ class CarryError(N3dmapError):
 
 def save_carry(out_dir: str | Path, carry_dir: str | Path, *, log: Callable[[str], None] = print) -> dict:
     """Write what OUT/work cannot remake into CARRY_DIR (replacing an earlier carry there); returns carry.json."""
-    work = Path(out_dir) / "work"
-    carry = Path(carry_dir)
+    work = Path(out_dir).resolve() / "work"
+    carry = Path(carry_dir).resolve()   # resolved: `--to .` has no name to put the temporary folder beside
     if not (work / "plan.json").is_file():
         raise CarryError(f"{out_dir}: no benchmark here (no work/plan.json); give the --out of `bench paper`")
+    _refuse_unsafe_target(work.parent, carry, carry_dir)
     _refuse_if_written(work)
     data = {}
     for manifest_path in sorted((work / DATA_STAGE_ROOT).glob("*/manifest.json")):
@@ -100,6 +101,25 @@ def save_carry(out_dir: str | Path, carry_dir: str | Path, *, log: Callable[[str
         f"{len(done['finished'])} stages finished, {len(done['under_way'])} under way"
         + "".join(f"\n[carry]   under way: {stage} at step {step}" for stage, step in done["under_way"].items()))
     return manifest
+
+
+def _refuse_unsafe_target(out: Path, carry: Path, given: str | Path) -> None:
+    """CarryError unless `carry` (resolved) may be replaced by a carry of the benchmark in `out` (resolved): it must
+    lie outside the benchmark (a carry replaces its folder whole: inside `--out` it would delete the run's datasets
+    and stages, above it the run itself), and a save may lose nothing there: its top-level files are kept (notes
+    beside the carry), its `work/` is replaced only when carry.json says it is an earlier carry's, and any other
+    folder in it refuses the save."""
+    if carry == out or carry.is_relative_to(out) or out.is_relative_to(carry):
+        raise CarryError(f"--to {given}: it must lie outside the benchmark's --out {out} (the carry replaces its "
+                         "folder whole, which would delete the run's own files)")
+    if carry.exists() and not carry.is_dir():
+        raise CarryError(f"--to {given}: a file is there, not a folder")
+    if carry.is_dir():
+        earlier = (carry / CARRY_MANIFEST).is_file()
+        lost = sorted(p.name for p in carry.iterdir() if p.is_dir() and not (p.name == "work" and earlier))
+        if lost:
+            raise CarryError(f"--to {given}: holds folder(s) {lost} that a save would delete (it is not an earlier "
+                             f"carry{'' if earlier else f', no {CARRY_MANIFEST}'}); give a new or empty folder")
 
 
 def progress(work: Path, listing: dict) -> dict:
@@ -217,6 +237,11 @@ def restore_carry(carry_dir: str | Path, out_dir: str | Path, *, log: Callable[[
         if source.stat().st_size != info["bytes"] or sha256_file(source) != info["sha256"]:
             raise CarryError(f"{carry}: carried file work/{rel} does not match its sha256 in {CARRY_MANIFEST} "
                              "(changed or truncated since it was saved)")
+    try:   # checked before anything is written (its sha256 matched: the file is the one saved)
+        config = BenchConfig.from_dict(json.loads((carry / "work" / "plan.json").read_text()))
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise CarryError(f"{carry}: work/plan.json is not a benchmark plan of this n3dmap "
+                         f"({type(e).__name__}: {e})") from None
     tmp = work.with_name(work.name + ".restoring")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
@@ -228,7 +253,6 @@ def restore_carry(carry_dir: str | Path, out_dir: str | Path, *, log: Callable[[
             target = tmp / rel
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(carry / "work" / rel, target)
-        config = BenchConfig.from_dict(json.loads((tmp / "plan.json").read_text()))
         _data_stages(StageRunner(tmp, log), config)
         _check_regenerated_data(manifest["data"], tmp)
         for rel in data_times:

@@ -206,3 +206,43 @@ def test_a_run_still_being_written_is_refused(work, tmp_path):
         worker.kill()
         worker.wait()
         (work / "seed0" / "worker.pid").write_text("999999999\n")
+
+
+def test_a_target_inside_or_above_the_benchmark_or_a_foreign_folder_is_refused(work, tmp_path, monkeypatch):
+    # a carry replaces its folder whole: here it would have deleted the run's datasets and stages
+    report = work.parent
+    before = sorted(p.relative_to(report).as_posix() for p in report.rglob("*"))
+    for target in (report, work, work / "seed0", report.parent):
+        with pytest.raises(CarryError, match="must lie outside the benchmark's --out"):
+            save_carry(report, target, log=lambda line: None)
+    monkeypatch.chdir(work)   # `--to .`: resolved first (it has no name to build the temporary folder from)
+    with pytest.raises(CarryError, match=r"--to \.: it must lie outside"):
+        save_carry(report, ".", log=lambda line: None)
+    assert sorted(p.relative_to(report).as_posix() for p in report.rglob("*")) == before
+    foreign = tmp_path / "project"
+    _write(foreign / "src" / "mine.txt", "keep me")
+    _write(foreign / "work" / "theirs.txt", "keep me too")
+    with pytest.raises(CarryError, match=r"holds folder\(s\) \['src', 'work'\] that a save would delete"):
+        save_carry(report, foreign, log=lambda line: None)
+    assert (foreign / "src" / "mine.txt").read_text() == "keep me"
+    assert (foreign / "work" / "theirs.txt").read_text() == "keep me too"
+    _write(tmp_path / "a_file")
+    with pytest.raises(CarryError, match="a file is there"):
+        save_carry(report, tmp_path / "a_file", log=lambda line: None)
+    (tmp_path / "empty").mkdir()
+    save_carry(report, tmp_path / "empty", log=lambda line: None)   # new or empty: fine, and so is a second save
+    save_carry(report, tmp_path / "empty", log=lambda line: None)
+    assert (tmp_path / "empty" / CARRY_MANIFEST).is_file()
+
+
+def test_a_carried_plan_that_is_not_a_plan_is_refused_before_anything_is_written(carry, tmp_path):
+    from core.data.shards import sha256_file
+
+    plan = carry / "work" / "plan.json"
+    plan.write_text("{}")
+    manifest = json.loads((carry / CARRY_MANIFEST).read_text())
+    manifest["files"]["plan.json"] = {"bytes": plan.stat().st_size, "sha256": sha256_file(plan)}
+    (carry / CARRY_MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(CarryError, match="work/plan.json is not a benchmark plan"):
+        restore_carry(carry, tmp_path / "a", log=lambda line: None)
+    assert not (tmp_path / "a").exists()
