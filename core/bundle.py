@@ -124,9 +124,18 @@ def read_bundle_meta(directory: str | os.PathLike) -> dict:
         meta = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise BundleError(f"corrupt {path}: {e}") from None
+    if not isinstance(meta, dict):
+        raise BundleError(f"corrupt {path}: not a JSON object")
     for key in ("format_version", "preset", "modules"):
         if key not in meta:
             raise BundleError(f"corrupt {path}: missing key {key!r}")
+    modules = meta["modules"]
+    if not isinstance(modules, dict):
+        raise BundleError(f"corrupt {path}: 'modules' must map a module name to its kind and config, "
+                          f"got {type(modules).__name__}")
+    for name, entry in modules.items():
+        if not (isinstance(entry, dict) and isinstance(entry.get("kind"), str) and isinstance(entry.get("config"), dict)):
+            raise BundleError(f"corrupt {path}: module {name!r} needs a 'kind' (string) and a 'config' (object)")
     if meta["format_version"] != BUNDLE_FORMAT_VERSION:
         raise BundleError(f"{path}: format_version {meta['format_version']} not supported "
                           f"(this n3dmap reads {BUNDLE_FORMAT_VERSION})")
@@ -159,7 +168,10 @@ def load_bundle(directory: str | os.PathLike, device: torch.device | str = "cpu"
         if name not in meta["modules"]:
             raise BundleError(f"bundle {directory} has no module {name!r}; it holds {sorted(meta['modules'])}")
         entry = meta["modules"][name]
-        module = build_module(entry["kind"], entry["config"])
+        try:
+            module = build_module(entry["kind"], entry["config"])
+        except (BundleError, ValueError, KeyError) as e:
+            raise BundleError(f"bundle {directory}: module {name!r} in {BUNDLE_JSON}: {e}") from None
         expected = module.state_dict()
         state = {}
         for key, ref in expected.items():

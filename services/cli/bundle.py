@@ -74,8 +74,11 @@ def _merge(args: argparse.Namespace) -> int:
     from services.cli.errors import CliError
     from services.training.job import git_commit
 
+    from services.cli.paths import check_creatable_dir
+
     paths = [Path(b) for b in args.bundles]
     out = Path(args.out)
+    check_creatable_dir(out, "--out")
     if (out / BUNDLE_JSON).exists():
         raise CliError(f"--out {out} already holds a bundle; merge into a new directory (nothing was written)")
     if any(out.resolve() == p.resolve() for p in paths):

@@ -27,6 +27,8 @@ from typing import Callable
 # `python -m services.cli.main` that module is __main__, and its CliError would be a different class.
 from core.errors import DataError, N3dmapError
 from core.data.seeds import SEED_STRIDE, episode_seed
+from services.cli.argtypes import non_negative_float, non_negative_int, positive_float, positive_int
+from services.cli.paths import check_creatable_dir
 
 
 def register(subparsers) -> None:
@@ -41,27 +43,27 @@ def register(subparsers) -> None:
                                    f"uses seed = SEED*{SEED_STRIDE} + i.")
     g.add_argument("--out", required=True, type=Path, help="dataset directory to create")
     g.add_argument("--preset", required=True, choices=["tiny", "small", "paper"])
-    g.add_argument("--episodes", required=True, type=_positive_int, help="number of records")
-    g.add_argument("--seed", type=_non_negative_int, default=0, help="dataset seed S (record i uses S*100003+i)")
-    g.add_argument("--views", type=_positive_int, default=None, help="views per record (default: preset)")
-    g.add_argument("--frames", type=_positive_int, default=None, help="time steps per record (default: preset)")
+    g.add_argument("--episodes", required=True, type=positive_int, help="number of records")
+    g.add_argument("--seed", type=non_negative_int, default=0, help="dataset seed S (record i uses S*100003+i)")
+    g.add_argument("--views", type=positive_int, default=None, help="views per record (default: preset)")
+    g.add_argument("--frames", type=positive_int, default=None, help="time steps per record (default: preset)")
     g.add_argument("--split", choices=["train", "val"], default="train")
     g.add_argument("--moving-ego", choices=["on", "off", "mixed"], default="off",
                    help="whether the ego rig moves (mixed: odd-indexed records)")
     g.add_argument("--sparse-depth", action="store_true", help="LiDAR-like sparse depth")
-    g.add_argument("--noise", type=_non_negative_float, default=0.0, help="depth noise sigma, metres")
-    g.add_argument("--exposure-jitter", type=_non_negative_float, default=0.0, metavar="S",
+    g.add_argument("--noise", type=non_negative_float, default=0.0, help="depth noise sigma, metres")
+    g.add_argument("--exposure-jitter", type=non_negative_float, default=0.0, metavar="S",
                    help="std of each image's log gain (auto-exposure); default 0: off")
-    g.add_argument("--white-balance-jitter", type=_non_negative_float, default=0.0, metavar="S",
+    g.add_argument("--white-balance-jitter", type=non_negative_float, default=0.0, metavar="S",
                    help="std of each image's per-channel log gain (auto white balance); default 0: off")
-    g.add_argument("--pixel-noise", type=_non_negative_float, default=0.0, metavar="S",
+    g.add_argument("--pixel-noise", type=non_negative_float, default=0.0, metavar="S",
                    help="per-pixel colour noise std, in [0, 1] colour units; default 0: off")
-    g.add_argument("--texture-scale", type=_positive_float, nargs=2, default=None, metavar=("LO", "HI"),
+    g.add_argument("--texture-scale", type=positive_float, nargs=2, default=None, metavar=("LO", "HI"),
                    help="pattern cell sizes (metres) of the objects' textures, drawn uniformly per object "
                         "(default: the preset's, at least one voxel)")
-    g.add_argument("--shard-mb", type=_positive_float, default=256.0, help="target shard size in MB")
+    g.add_argument("--shard-mb", type=positive_float, default=256.0, help="target shard size in MB")
     g.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
-    g.add_argument("--jobs", type=_positive_int, default=None,
+    g.add_argument("--jobs", type=positive_int, default=None,
                    help="render processes, one torch thread each (default: min(CPUs, 4), or 1 for a "
                         "job of a few seconds; 1: in this process); the output is the same for any N")
     g.set_defaults(func=cmd_generate)
@@ -95,20 +97,20 @@ def register(subparsers) -> None:
 
     k = isub.add_parser("kitti", help="KITTI object (training/{image_2,velodyne,calib,label_2}, ImageSets)")
     k.add_argument("src", type=Path, help="KITTI object root (holding training/ and ImageSets/)")
-    k.add_argument("--resize", type=_positive_int, nargs=2, metavar=("H", "W"), default=None,
+    k.add_argument("--resize", type=positive_int, nargs=2, metavar=("H", "W"), default=None,
                    help="resample images (and render depth) at H×W so that all records share one size")
     _import_common(k)
     k.set_defaults(func=cmd_import_kitti)
 
     t = isub.add_parser("tum", help="a TUM RGB-D sequence (rgb.txt, depth.txt, groundtruth.txt)")
     t.add_argument("src", type=Path, help="sequence directory")
-    t.add_argument("--frames", type=_positive_int, default=2, help="time steps T per record")
-    t.add_argument("--frame-step", type=_positive_int, default=1, help="take every k-th associated frame")
-    t.add_argument("--stride", type=_positive_int, default=None,
+    t.add_argument("--frames", type=positive_int, default=2, help="time steps T per record")
+    t.add_argument("--frame-step", type=positive_int, default=1, help="take every k-th associated frame")
+    t.add_argument("--stride", type=positive_int, default=None,
                    help="frames between record starts (default: T, non-overlapping)")
     t.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"), default=None,
                    help="pinhole intrinsics (default: freiburg1 517.3 516.5 318.6 255.3)")
-    t.add_argument("--max-dt", type=_positive_float, default=0.02,
+    t.add_argument("--max-dt", type=positive_float, default=0.02,
                    help="largest rgb/depth/pose timestamp gap, seconds")
     _import_common(t)
     t.set_defaults(func=cmd_import_tum)
@@ -119,37 +121,16 @@ def _import_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--split", choices=["train", "val"], default="train")
     p.add_argument("--preset", choices=["tiny", "small", "paper"], default="paper",
                    help="the map grid recorded in the manifest (default: paper)")
-    p.add_argument("--limit", type=_positive_int, default=None, help="import at most this many records")
-    p.add_argument("--shard-mb", type=_positive_float, default=256.0, help="target shard size in MB")
+    p.add_argument("--limit", type=positive_int, default=None, help="import at most this many records")
+    p.add_argument("--shard-mb", type=positive_float, default=256.0, help="target shard size in MB")
     p.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
 
 
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    value = float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-    return value
-
-
-def _non_negative_float(text: str) -> float:
-    value = float(text)
-    if not value >= 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
-    return value
+# One record's images are rendered, checked and written whole (uint8 RGB + float32 depth per pixel); a record
+# over this would exhaust the memory of a typical machine — the kernel then kills the process without a word.
+# The presets' records take 0.3–3 MB.
+RECORD_BYTES_PER_PIXEL = 3 + 4
+MAX_RECORD_BYTES = 1 << 30
 
 
 def _shard_bytes(mb: float) -> int:
@@ -185,10 +166,17 @@ def cmd_generate(args: argparse.Namespace) -> int:
     from core.presets import get_preset
 
     check_output_dir(args.out, overwrite=args.overwrite)
+    check_creatable_dir(args.out, "--out")
 
     preset = get_preset(args.preset)
     if args.episodes >= SEED_STRIDE:
         raise DataError(f"--episodes must be below {SEED_STRIDE} (record seeds would overlap the next --seed)")
+    T, V = args.frames or preset.num_frames, args.views or preset.num_views
+    record_bytes = T * V * preset.camera.H * preset.camera.W * RECORD_BYTES_PER_PIXEL
+    if record_bytes > MAX_RECORD_BYTES:
+        raise DataError(f"--views {V} × --frames {T} at preset {preset.name} ({preset.camera.H}×{preset.camera.W}): "
+                        f"one record's images would take {record_bytes / 2**30:.1f} GiB in memory, over the "
+                        f"{MAX_RECORD_BYTES / 2**30:.0f} GiB limit; use fewer views or frames")
 
     from services.cli.render_pool import RecordSpec, default_jobs, render_records
 
@@ -198,7 +186,6 @@ def cmd_generate(args: argparse.Namespace) -> int:
                         moving_ego={"on": True, "off": False, "mixed": i % 2 == 1}[args.moving_ego],
                         sparse_depth=args.sparse_depth, noise=args.noise, world_overrides=world_overrides)
              for i in range(args.episodes)]
-    T, V = args.frames or preset.num_frames, args.views or preset.num_views
     jobs = args.jobs or default_jobs(records=args.episodes,
                                      pixels_per_record=T * V * preset.camera.H * preset.camera.W)
     jobs = min(jobs, args.episodes)
@@ -307,6 +294,8 @@ def cmd_preview(args: argparse.Namespace) -> int:
         raise N3dmapError("--points applies to the Rerun recording: give --rerun FILE.rrd")
     if args.out is not None and args.out.is_dir():
         raise N3dmapError(f"--out {args.out} is a directory; give the PNG file to write (e.g. {args.out / 'preview.png'})")
+    if args.out is not None:
+        check_creatable_dir(args.out.parent, f"--out {args.out}: its folder")
     if args.rerun is not None:  # before reading anything: a missing extra or a bad path is the first error
         from services.viz.rerun_sdk import check_rrd_path, require_rerun
         require_rerun()
@@ -344,6 +333,7 @@ def _run_import(args: argparse.Namespace, fn: Callable[..., dict], **options) ->
     from core.presets import get_preset
 
     check_output_dir(args.out, overwrite=args.overwrite)
+    check_creatable_dir(args.out, "--out")
     preset = get_preset(args.preset)
     with _Progress(args.limit, f"import {args.import_format}") as progress:
         manifest = fn(args.src, args.out, split=args.split, preset_name=preset.name,

@@ -137,3 +137,15 @@ def register(subparsers) -> None:
     kinds = parser.add_subparsers(dest="eval_kind", metavar="KIND", required=True)
     for module_name in EVAL_KINDS.values():
         importlib.import_module(module_name).register(kinds)
+    for kind_parser in kinds.choices.values():   # every kind: REPORT_DIR checked before the evaluation runs
+        kind_parser.set_defaults(func=_checking_report_dir(kind_parser.get_default("func")))
+
+
+def _checking_report_dir(run):
+    """`run` after checking that --out can be created: a report is written at the end of the work."""
+    def checked(args: argparse.Namespace):
+        from services.cli.paths import check_creatable_dir
+
+        check_creatable_dir(args.out, "--out")
+        return run(args)
+    return checked

@@ -20,6 +20,7 @@ import os
 from pathlib import Path
 
 from core.errors import DataError
+from services.cli.argtypes import non_negative_float, positive_float
 from services.training.config import TrainConfigError
 
 # Task parser modules under services/cli/train_tasks/, in `n3dmap train --help` order.
@@ -48,7 +49,7 @@ def add_common_train_args(parser: argparse.ArgumentParser) -> None:
     opt = parser.add_argument_group("optimisation")
     opt.add_argument("--steps", type=int, default=None, help="total steps (default: preset)")
     opt.add_argument("--batch-size", type=int, default=None, help="records per worker per step (default: preset)")
-    opt.add_argument("--lr", type=float, default=None, help="Adam learning rate (default: preset)")
+    opt.add_argument("--lr", type=positive_float, default=None, help="Adam learning rate (default: preset)")
     opt.add_argument("--seed", type=int, default=0, help="seed for weights and data order")
     opt.add_argument("--ema-decay", type=float, default=0.0, metavar="D",
                      help="keep an exponential moving average of the weights with this decay (e.g. 0.995) and "
@@ -64,7 +65,7 @@ def add_common_train_args(parser: argparse.ArgumentParser) -> None:
     ray.add_argument("--cpus-per-worker", type=int, default=1,
                      help="CPUs Ray reserves per worker (on a cluster also its torch threads; on the embedded Ray "
                           "the usable CPUs are shared out so that workers × threads never exceeds them)")
-    ray.add_argument("--gpus-per-worker", type=float, default=0.0,
+    ray.add_argument("--gpus-per-worker", type=non_negative_float, default=0.0,
                      help="GPUs Ray reserves per worker, fractions allowed (default 0: none; with --device cuda)")
     ray.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     ray.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
@@ -134,6 +135,9 @@ def run_train(task_name: str, args: argparse.Namespace, task_options: dict) -> i
 
     if not Path(args.data).is_dir():
         raise DataError(f"--data {args.data}: no such dataset directory")
+    from services.cli.paths import check_creatable_dir
+
+    check_creatable_dir(args.run_dir, "--run-dir")
     config = config_from_args(task_name, args, task_options)
     if config.workers == 0 and not config.attach:
         # One process trains: it gets every usable CPU (Ray workers get theirs in services.training.job).

@@ -9,6 +9,7 @@ run. Preset-dependent defaults (steps, batch size, lr, checkpoint cadence) are r
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
@@ -73,7 +74,7 @@ class TrainJobConfig:
             raise TrainConfigError(f"--workers must be >= 0, got {self.workers}")
         if self.cpus_per_worker < 1:
             raise TrainConfigError(f"cpus per worker must be >= 1, got {self.cpus_per_worker}")
-        if self.gpus_per_worker < 0:
+        if not (math.isfinite(self.gpus_per_worker) and self.gpus_per_worker >= 0):
             raise TrainConfigError(f"--gpus-per-worker must be >= 0, got {self.gpus_per_worker}")
         if self.gpus_per_worker > 0 and self.workers == 0:
             raise TrainConfigError("--gpus-per-worker needs --workers >= 1 (Ray schedules the GPUs)")
@@ -87,7 +88,7 @@ class TrainJobConfig:
                 raise TrainConfigError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
         if not 0.0 <= self.ema_decay < 1.0:
             raise TrainConfigError(f"--ema-decay must lie in [0, 1) (0: off), got {self.ema_decay}")
-        if self.lr is not None and not self.lr > 0:
+        if self.lr is not None and not (math.isfinite(self.lr) and self.lr > 0):
             raise TrainConfigError(f"--lr must be > 0, got {self.lr}")
         if self.object_store_mb < 1:
             raise TrainConfigError(f"--object-store-mb must be >= 1, got {self.object_store_mb}")

@@ -38,7 +38,18 @@ CASES = [
     # `preview --out DIR` wrote DIR.png and said it wrote DIR; a file in --out's path was a traceback
     _case("info-missing-shard", "data info {noshard}", "missing shard"),
     _case("preview-out-is-dir", "data preview {data} --out {empty}", "--out {empty} is a directory"),
-    _case("preview-out-under-file", "data preview {data} --out {file}/p.png", "{file}"),
+    _case("preview-out-under-file", "data preview {data} --out {file}/p.png", "--out {file}/p.png: its folder {file} is a file"),
+    # an output folder under a regular file: refused naming the option before the work (was: a bare
+    # "[Errno 20] Not a directory" after the evaluation, or "File exists" naming the file for preview)
+    _case("eval-out-under-file", "eval occupancy --data {data} --bundle {bundle} --out {file}/r",
+          "--out {file}/r cannot be created: {file} is a file"),
+    _case("generate-out-under-file", "data generate --out {file}/d --preset tiny --episodes 1",
+          "--out {file}/d cannot be created: {file} is a file"),
+    _case("train-run-dir-under-file", "train occupancy --data {data} --run-dir {file}/run --steps 1 --workers 0",
+          "--run-dir {file}/run cannot be created"),
+    _case("merge-out-under-file", "bundle merge {bundle} {truncated_bundle} --out {file}/m", "--out {file}/m cannot be created"),
+    _case("bench-out-under-file", "bench paper --quick --seeds 1 --out {file}/r", "--out {file}/r cannot be created"),
+    _case("carry-to-under-file", "bench carry save --out {empty} --to {file}/c", "--to {file}/c cannot be created"),
     _case("info-missing", "data info {missing}", "{missing}"),
     _case("info-bad-json", "data info {badjson}", "{badjson}/manifest.json"),
     _case("generate-episodes-0", "data generate --out {out} --preset tiny --episodes 0", "--episodes"),
@@ -47,8 +58,17 @@ CASES = [
           "--exposure-jitter"),
     _case("generate-texture-scale-order", "data generate --out {out} --preset tiny --episodes 1 --texture-scale 0.5 0.1",
           "--texture-scale"),
+    # found by an audit: inf passed the module's own parsers (an OverflowError traceback, or a message naming
+    # the record instead of the flag), and a huge --views was killed by the kernel without a word
+    _case("generate-shard-mb-inf", "data generate --out {out} --preset tiny --episodes 1 --shard-mb inf", "--shard-mb"),
+    _case("generate-noise-inf", "data generate --out {out} --preset tiny --episodes 1 --noise inf", "--noise"),
+    _case("generate-texture-scale-inf", "data generate --out {out} --preset tiny --episodes 1 --texture-scale 0.1 inf",
+          "--texture-scale"),
+    _case("generate-views-huge", "data generate --out {out} --preset tiny --episodes 1 --views 100000000", "--views 100000000"),
     # stream: ranges in argparse (was: --rate 0 a ValueError traceback, --frames -3 / --count 0 exit 0);
     # a bad preset or --view and an unreachable zenoh endpoint were tracebacks
+    _case("bridge-bundle-without-flow", "stream bridge --bundle {bundle} --duration 1",
+          "--bundle {bundle} (version"),   # was: named by its version string only
     _case("camera-rate-0", "stream camera --camera-id c --synthetic --rate 0", "--rate"),
     _case("camera-frames-negative", "stream camera --camera-id c --synthetic --frames -3", "--frames"),
     _case("camera-episode-frames-0", "stream camera --camera-id c --synthetic --episode-frames 0", "--episode-frames"),
@@ -58,6 +78,9 @@ CASES = [
           "--view 9"),
     _case("camera-preset-typo", "stream camera --camera-id c --synthetic --preset tinny --frames 1", "tinny"),
     # train: --input-views 0 / 9 and --object-store-mb 0 trained and exited 0
+    _case("train-lr-inf", "train occupancy --data {data} --run-dir {out}/r10 --lr inf", "--lr"),
+    _case("train-gpus-nan", "train pretrain --data {data} --run-dir {out}/r11 --gpus-per-worker nan", "--gpus-per-worker"),
+    _case("train-warp-weight-negative", "train flow --data {data} --run-dir {out}/r12 --warp-weight -1", "--warp-weight"),
     _case("train-input-views-0", "train occupancy --data {data} --run-dir {out}/r1 --input-views 0", "--input-views"),
     _case("train-input-views-9", "train occupancy --data {data} --run-dir {out}/r2 --input-views 9",
           "--input-views 9"),

@@ -45,7 +45,37 @@ def load_manifest(root: str | os.PathLike) -> dict:
         total += entry["num_records"]
     if manifest.get("num_records") != total:
         raise DataError(f"{path}: num_records {manifest.get('num_records')!r} != sum over shards ({total})")
+    _check_grid(manifest.get("grid"), path)
+    _check_dims(manifest.get("dims"), path)
     return manifest
+
+
+GRID_SIZES, GRID_BOUNDS = ("Z", "Y", "X"), ("xmin", "xmax", "ymin", "ymax", "zmin", "zmax")
+
+
+def _check_grid(grid, path: Path) -> None:
+    """The optional 'grid' (the map grid the records were made for; `data info`, previews): positive int sizes
+    Z, Y, X and numeric bounds, each min below its max."""
+    if grid is None:
+        return
+    ok = (isinstance(grid, dict)
+          and all(type(grid.get(k)) is int and grid[k] > 0 for k in GRID_SIZES)
+          and all(isinstance(grid.get(k), (int, float)) and not isinstance(grid.get(k), bool) for k in GRID_BOUNDS)
+          and all(grid[f"{a}min"] < grid[f"{a}max"] for a in "xyz"))
+    if not ok:
+        raise DataError(f"{path}: 'grid' is malformed (needs positive integer {', '.join(GRID_SIZES)} and "
+                        f"{', '.join(GRID_BOUNDS)} with each min < max), got {grid!r}")
+
+
+def _check_dims(dims, path: Path) -> None:
+    """The optional 'dims': each named size's [min, max] over the records, non-negative integers."""
+    if dims is None:
+        return
+    ok = isinstance(dims, dict) and all(
+        isinstance(v, list) and len(v) == 2 and all(type(x) is int and x >= 0 for x in v) and v[0] <= v[1]
+        for v in dims.values())
+    if not ok:
+        raise DataError(f"{path}: 'dims' is malformed (each size needs [min, max], integers, min <= max), got {dims!r}")
 
 
 def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:

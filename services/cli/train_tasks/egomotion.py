@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from services.cli.argtypes import non_negative_float
 from services.cli.train import add_task_parser, run_train
 
 
@@ -14,8 +15,8 @@ def register(tasks) -> None:
                     "an MLP per scale, inverse-compositional) on consecutive frames; random yaw-heavy "
                     "perturbations of the second frame's map frame augment the pairs.")
     parser.add_argument("--no-augment", action="store_true", help="train on the recorded motion only")
-    parser.add_argument("--augment-deg", type=float, default=6.0, help="largest yaw perturbation (degrees)")
-    parser.add_argument("--augment-m", type=float, default=1.0, help="largest x/z perturbation (metres)")
+    parser.add_argument("--augment-deg", type=non_negative_float, default=6.0, help="largest yaw perturbation (degrees)")
+    parser.add_argument("--augment-m", type=non_negative_float, default=1.0, help="largest x/z perturbation (metres)")
     parser.add_argument("--occupancy", choices=("binary", "splat"), default=None,
                         help="occupancy channel of the input volumes (default: the task's)")
     parser.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,

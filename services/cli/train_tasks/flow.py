@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from services.cli.argtypes import non_negative_int
+from services.cli.argtypes import non_negative_float, non_negative_int
 from services.cli.errors import CliError
 from services.cli.train import add_task_parser, run_train
 
@@ -19,9 +19,9 @@ def register(tasks) -> None:
                     "learning rate is the preset's flow rate (the paper's 1e-4 at the paper preset).")
     parser.add_argument("--inputs", choices=("volume", "features"), default="volume",
                         help="what the module compares: input volumes (default) or mapper features")
-    parser.add_argument("--warp-weight", type=float, default=1.0,
+    parser.add_argument("--warp-weight", type=non_negative_float, default=1.0,
                         help="weight of the real pair's 3D feature-constancy loss over occupied voxels (default 1)")
-    parser.add_argument("--smooth-weight", type=float, default=0.05,
+    parser.add_argument("--smooth-weight", type=non_negative_float, default=0.05,
                         help="weight of the real pair's flow smoothness loss, mean |grad flow| (default 0.05)")
     parser.add_argument("--radius", type=non_negative_int, nargs=3, default=None, metavar=("RX", "RY", "RZ"),
                         help="cost-volume window in voxels (x, y, z) at every level (default 1 1 1; 2 1 2 "

@@ -293,3 +293,17 @@ def test_decode_record_rejects_pickles_and_garbage(records):
     msg = _one_line_error(lambda: decode_record(buf.getvalue(), where))
     assert msg.startswith(where) and "pickle" in msg
     _assert_same(decode_record(encode_record(records[0]), where), records[0])
+
+
+def test_a_malformed_grid_or_dims_is_refused_by_name(written):
+    path = written / MANIFEST_NAME
+    good = json.loads(path.read_text())
+    grid = {"Z": 8, "Y": 4, "X": 8, "xmin": -4.0, "xmax": 4.0, "ymin": -1, "ymax": 1, "zmin": 0.0, "zmax": 8.0}
+    path.write_text(json.dumps({**good, "grid": grid, "dims": {"T": [2, 2], "V": [1, 4]}}))
+    assert ShardDataset(written).manifest["grid"] == grid        # well-formed: read as written
+    for field, bad in (("grid", {"Z": 1}), ("grid", {**grid, "X": 0}), ("grid", {**grid, "xmin": 5.0}),
+                       ("grid", {**grid, "Y": 4.0}), ("grid", [8, 4, 8]),
+                       ("dims", {"T": 5}), ("dims", {"T": [3, 2]}), ("dims", {"V": [1, "4"]}), ("dims", [2])):
+        path.write_text(json.dumps({**good, field: bad}))
+        msg = _one_line_error(lambda: ShardDataset(written))
+        assert f"'{field}' is malformed" in msg and MANIFEST_NAME in msg, (field, bad, msg)

@@ -124,3 +124,18 @@ def test_heightmap_matches_loop():
             ys = [y for y in range(4) if occ[0, 0, z, y, x] >= 0.5]
             ref = (grid.ymax - (grid.ymin + min(ys) * grid.voxel_size)) if ys else 0.0
             assert hm[0, z, x].item() == pytest.approx(ref)
+
+
+def test_a_malformed_bundle_json_is_refused_by_name(bundle_dir, tmp_path):
+    good = json.loads((bundle_dir[0] / "bundle.json").read_text())
+    name = next(iter(good["modules"]))
+    cases = [([1, 2], "not a JSON object"),
+             ({**good, "modules": [name]}, "'modules' must map a module name"),
+             ({**good, "modules": {name: {"kind": good["modules"][name]["kind"]}}}, rf"module '{name}' needs a 'kind'"),
+             ({**good, "modules": {name: {**good["modules"][name], "kind": "bogus"}}},
+              rf"bundle .*: module '{name}' in bundle.json: unknown module kind 'bogus'")]
+    for i, (meta, message) in enumerate(cases):
+        bad = _copy(bundle_dir[0], tmp_path / f"bad{i}")
+        (bad / "bundle.json").write_text(json.dumps(meta))
+        with pytest.raises(BundleError, match=message):
+            load_bundle(bad)

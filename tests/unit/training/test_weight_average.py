@@ -141,3 +141,13 @@ def test_resume_refuses_another_decay(tmp_path):
 def test_decay_out_of_range_is_a_config_error(tmp_path):
     with pytest.raises(TrainConfigError, match="--ema-decay must lie in"):
         _config(tmp_path, ema_decay=1.0)
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("lr", float("inf"), "--lr must be > 0"), ("lr", float("nan"), "--lr must be > 0"), ("lr", 0.0, "--lr must be > 0"),
+    ("gpus_per_worker", float("nan"), "--gpus-per-worker must be >= 0"),
+    ("gpus_per_worker", float("inf"), "--gpus-per-worker must be >= 0")])
+def test_non_finite_numbers_are_config_errors(tmp_path, field, value, message):
+    # NaN compares false both ways, so a plain `< 0` let it through (found by an audit of the CLI)
+    with pytest.raises(TrainConfigError, match=message):
+        _config(tmp_path, **{field: value})
