@@ -65,6 +65,26 @@ def unit_fraction(text: str) -> float:
     return value
 
 
+def saliency_score(text: str) -> float:
+    """A moving-object score threshold in [−1, 1] (the centre-surround saliency the boxes are scored by)."""
+    value = _number(text, float, "a number in [-1, 1]")
+    if not -1.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be in [-1, 1], got {text}")
+    return value
+
+
+MIN_RATE_HZ, MAX_RATE_HZ = 1e-3, 1000.0
+
+
+def frame_rate(text: str) -> float:
+    """Frames per second in [0.001, 1000]: one frame in 1000 s at the slowest (a rate of 1e-300 waited 1e300 s,
+    which sleep() refuses with an OverflowError), and above 1000 Hz the render, not the rate, paces it."""
+    value = _number(text, float, f"a number in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}]")
+    if not MIN_RATE_HZ <= value <= MAX_RATE_HZ:
+        raise argparse.ArgumentTypeError(f"must be in [{MIN_RATE_HZ:g}, {MAX_RATE_HZ:g}] Hz, got {text}")
+    return value
+
+
 def port(text: str) -> int:
     """A TCP port, 0..65535 (0: the OS picks a free one)."""
     value = _number(text, int, "a port number (0-65535)")

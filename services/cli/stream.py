@@ -13,8 +13,8 @@ import threading
 import time
 from pathlib import Path
 
-from services.cli.argtypes import (DEFAULT_FRAME_DT, FRAME_DT_HELP, non_negative_float, non_negative_int,
-                                   positive_float, positive_int)
+from services.cli.argtypes import (DEFAULT_FRAME_DT, FRAME_DT_HELP, frame_rate, non_negative_float, non_negative_int,
+                                   positive_float, positive_int, saliency_score)
 from services.cli.egomotion_options import add_egomotion_arguments
 from services.cli.moving_options import add_moving_object_arguments, moving_objects_config
 from services.streaming.session import add_zenoh_arguments, options_from_args
@@ -39,7 +39,8 @@ def register(subparsers) -> None:
                         help="torch intra-op threads (default: CPU cores − 1, at least 1, at most 8: the "
                              "camera, listener and zenoh need a core; on a loaded 2-core host two threads "
                              "spin against each other and run ~10× slower)")
-    bridge.add_argument("--min-score", type=float, default=0.0, help="drop boxes scored below this")
+    bridge.add_argument("--min-score", type=saliency_score, default=0.0,
+                        help="drop boxes whose centre-surround saliency, in [-1, 1], is below this (default 0)")
     add_moving_object_arguments(bridge)
     add_egomotion_arguments(bridge)  # the splat stage by default: a 10 Hz stream cannot pay a TSDF stage
     bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
@@ -72,7 +73,8 @@ def register(subparsers) -> None:
     source = camera.add_mutually_exclusive_group(required=True)
     source.add_argument("--data", metavar="DIR", help="replay view --view of every record of a shard dataset")
     source.add_argument("--synthetic", action="store_true", help="render the synthetic world live")
-    camera.add_argument("--rate", type=positive_float, default=10.0, metavar="HZ", help="frames per second (default 10)")
+    camera.add_argument("--rate", type=frame_rate, default=10.0, metavar="HZ",
+                        help="frames per second, 0.001 to 1000 (default 10)")
     camera.add_argument("--frames", type=positive_int, default=None, metavar="N", help="stop after N frames (default: endless)")
     camera.add_argument("--preset", default="tiny", help="synthetic: preset of the rendered frames (default tiny)")
     camera.add_argument("--seed", type=int, default=0, help="synthetic: first scene seed")

@@ -93,10 +93,15 @@ class MicroBatcher:
         self._wakeup.set()
         try:
             return await asyncio.wait_for(asyncio.shield(pending.future), timeout_s)
-        except asyncio.TimeoutError:
+        except (asyncio.TimeoutError, asyncio.CancelledError) as e:
+            # Timed out, or the caller went away (a gRPC client cancelled, its deadline passed, an HTTP client
+            # disconnected): a request still queued leaves the queue, so that nobody's model time and no queue
+            # slot goes to an answer no one will read; one already in a model call finishes unread.
             if pending in self._queue:
                 self._queue.remove(pending)
             pending.future.cancel()
+            if isinstance(e, asyncio.CancelledError):
+                raise
             raise RequestTimeout(f"request did not finish within {timeout_s:g} s") from None
 
     async def drain(self, timeout_s: float) -> bool:
@@ -145,25 +150,42 @@ class MicroBatcher:
             waits = [started - p.arrived for p in batch]
             self._running = len(batch)
             try:
-                results = await loop.run_in_executor(
-                    self._executor, self._run_batch, batch[0].key, [p.item for p in batch])
-                if len(results) != len(batch):
-                    raise RuntimeError(f"batch of {len(batch)} gave {len(results)} results")
-                error = None
-            except Exception as e:  # delivered to every caller of the batch
-                results, error = [None] * len(batch), e
+                outcomes = await self._run(loop, batch)
             finally:
                 self._running = 0
             model_s = time.perf_counter() - started
             if self._observe is not None:
                 self._observe(batch[0].key, len(batch), waits, model_s)
-            for p, r, w in zip(batch, results, waits):
+            for p, (result, error), w in zip(batch, outcomes, waits):
                 if p.future.done():
                     continue
                 if error is not None:
                     p.future.set_exception(error)
                 else:
-                    p.future.set_result((r, BatchStats(queue_s=w, model_s=model_s, batch_size=len(batch))))
+                    p.future.set_result((result, BatchStats(queue_s=w, model_s=model_s, batch_size=len(batch))))
+
+    async def _run(self, loop, batch: list[_Pending]) -> list[tuple[Any, BaseException | None]]:
+        """(result, error) per request of `batch`. A failed batch of several is run again one request at a time:
+        an error one request's content causes (a degenerate scene, a shape the model refuses) must reach that
+        request alone — delivered to the whole batch, it answered 4xx to callers whose input was valid."""
+        try:
+            return list(zip(await self._call(loop, batch), [None] * len(batch)))
+        except Exception as e:
+            if len(batch) == 1:
+                return [(None, e)]
+        outcomes = []
+        for p in batch:
+            try:
+                outcomes.append(((await self._call(loop, [p]))[0], None))
+            except Exception as e:
+                outcomes.append((None, e))
+        return outcomes
+
+    async def _call(self, loop, batch: list[_Pending]) -> list:
+        results = await loop.run_in_executor(self._executor, self._run_batch, batch[0].key, [p.item for p in batch])
+        if len(results) != len(batch):
+            raise RuntimeError(f"batch of {len(batch)} gave {len(results)} results")
+        return results
 
     def _count(self, key: Hashable) -> int:
         return sum(1 for p in self._queue if p.key == key)

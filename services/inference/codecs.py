@@ -12,6 +12,7 @@ import binascii
 import io
 import math
 import zipfile
+import zlib
 
 import numpy as np
 from PIL import Image as PILImage
@@ -120,6 +121,7 @@ def encode_png_depth(depth_m: np.ndarray) -> bytes:
 
 
 def load_npy(data: bytes, field: str) -> np.ndarray:
+    _check_npy_size(data, field)
     try:
         arr = np.load(io.BytesIO(data), allow_pickle=False)
     except (ValueError, OSError, EOFError) as e:
@@ -127,6 +129,26 @@ def load_npy(data: bytes, field: str) -> np.ndarray:
     if not isinstance(arr, np.ndarray):
         raise InvalidInput(field, "expected one .npy array")
     return arr
+
+
+def _check_npy_size(data: bytes, field: str) -> None:
+    """InvalidInput unless the .npy header's shape and dtype fit in the bytes that follow it. Why: np.load
+    allocates the declared array before reading it, so a 100-byte member declaring shape (2**40,) asked for a
+    TiB (MemoryError: a 500) — the inflation cap counts the member's bytes, not what its header claims."""
+    stream = io.BytesIO(data)
+    try:
+        version = np.lib.format.read_magic(stream)
+        read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                       else np.lib.format.read_array_header_2_0)
+        shape, _, dtype = read_header(stream)
+    except (ValueError, OSError, EOFError, TypeError) as e:
+        raise InvalidInput(field, f"not a .npy array without pickles ({e})") from None
+    if dtype.hasobject:
+        return   # np.load refuses it below (allow_pickle=False), naming why
+    declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
+    if declared > len(data) - stream.tell():
+        raise InvalidInput(field, f".npy header declares {list(shape)} {dtype} ({declared} bytes) but "
+                                  f"{len(data) - stream.tell()} bytes follow it")
 
 
 def load_npz(data: bytes, field: str = "body", max_bytes: int = MAX_ARRAY_BYTES) -> dict[str, np.ndarray]:
@@ -143,7 +165,8 @@ def load_npz(data: bytes, field: str = "body", max_bytes: int = MAX_ARRAY_BYTES)
             return out
     except InvalidInput:
         raise
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, NotImplementedError) as e:
+    except (zipfile.BadZipFile, zlib.error, ValueError, OSError, EOFError, NotImplementedError) as e:
+        # zlib.error: a member whose deflate stream is corrupt (it is not an OSError)
         raise InvalidInput(field, f"not a readable .npz archive ({e})") from None
 
 

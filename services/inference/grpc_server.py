@@ -61,8 +61,11 @@ def _failure(rpc: str, e: Exception) -> tuple[grpc.StatusCode, str]:
 
 
 def _deadline(context: grpc.aio.ServicerContext) -> float | None:
+    """Seconds left of the call's deadline (None: the call has none, the runtime's --timeout applies). A deadline
+    already passed is 0, which times the request out at once (DEADLINE_EXCEEDED) instead of granting it the
+    runtime's full default (it was None, i.e. 30 s, for a caller that had already given up)."""
     remaining = context.time_remaining()
-    return remaining if remaining is not None and remaining > 0 else None
+    return None if remaining is None else max(remaining, 0.0)
 
 
 class InferenceServicer(inference_pb2_grpc.InferenceServicer):

@@ -195,7 +195,7 @@ class Runtime:
             raise NotReady("the runtime is not ready (starting, reloading state or shutting down)")
         r = self.require(route, item)
         (result, version), stats = await self._batcher.submit(
-            r.batch_key(item), item, timeout_s=timeout_s or self.config.timeout_s)
+            r.batch_key(item), item, timeout_s=self.config.timeout_s if timeout_s is None else timeout_s)
         return Answer(result=result, bundle_version=version, frame=BOX_FRAME, stats=stats)
 
     async def call_on_model_thread(self, fn: Callable[[], Any], *, timeout_s: float | None = None) -> Any:
@@ -209,7 +209,7 @@ class Runtime:
                 return fn()
 
         future = asyncio.get_running_loop().run_in_executor(self._model_thread, run)
-        timeout = timeout_s or self.config.timeout_s
+        timeout = self.config.timeout_s if timeout_s is None else timeout_s   # 0: a deadline already passed
         try:
             return await asyncio.wait_for(future, timeout)
         except asyncio.TimeoutError:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import signal
 import socket
 import sys
@@ -133,7 +134,7 @@ def run(settings: ServeSettings) -> int:
     app = build_app(settings, runtime)
     config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level=settings.log_level,
                             ssl_certfile=settings.tls_cert, ssl_keyfile=settings.tls_key,
-                            timeout_graceful_shutdown=int(settings.drain_s) or None, lifespan="on")
+                            timeout_graceful_shutdown=math.ceil(settings.drain_s), lifespan="on")  # 0 is 0: `or None` waited forever
     server = _server_class()(config)
     try:
         server.run(sockets=sockets)

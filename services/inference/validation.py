@@ -21,6 +21,12 @@ FLOAT32_MAX = float(np.finfo(np.float32).max)
 # Views fused as one instant must have been captured together: a car at 10 m/s moves 0.5 m in 50 ms, about a
 # voxel at the presets' resolutions, so views further apart than this would fuse it twice.
 MAX_VIEW_SKEW_S = 0.05
+# The shortest interval a pair may span: velocities are displacement / interval, and an interval of 1e-300 s (two
+# timestamps a rounding apart) made them inf, which JSON writes as null. 0.1 ms is a 10 kHz camera.
+MIN_PAIR_INTERVAL_S = 1e-4
+# The smallest focal length, in pixels, after the cast to float32 the model runs in (fx = 1e-46 became 0.0 there
+# and 1e-40 a denormal, after the check in float64 had passed them: unprojection then divided by ~0).
+MIN_FOCAL_PX = 1e-3
 
 
 @dataclass(frozen=True)
@@ -116,9 +122,10 @@ def _check_matrix(arr: np.ndarray, field: str) -> np.ndarray:
 def check_intrinsics(arr, field: str) -> np.ndarray:
     """4×4 pinhole intrinsics with fx, fy > 0, no skew, third row [0, 0, 1, 0]."""
     m = _check_matrix(arr, field)
-    fx, fy = m[0, 0], m[1, 1]
-    if not (fx > 0 and fy > 0):
-        raise InvalidInput(field, f"focal lengths must be positive, got fx={fx:g} fy={fy:g}")
+    fx, fy = np.float32(m[0, 0]), np.float32(m[1, 1])   # as the model will see them
+    if not (fx >= MIN_FOCAL_PX and fy >= MIN_FOCAL_PX):
+        raise InvalidInput(field, f"focal lengths must be positive, at least {MIN_FOCAL_PX:g} px, got fx={m[0, 0]:g} "
+                                  f"fy={m[1, 1]:g}")
     if abs(m[0, 1]) > 1e-6 or abs(m[1, 0]) > 1e-6 or np.abs(m[2] - [0, 0, 1, 0]).max() > 1e-6:
         raise InvalidInput(field, "must be a pinhole matrix [[fx,0,cx,0],[0,fy,cy,0],[0,0,1,0],[0,0,0,1]]")
     return m.astype(np.float32)
@@ -161,11 +168,18 @@ def make_view(*, rgb: np.ndarray, depth: np.ndarray, pix_T_cam, world_T_cam=None
                 scene_start=bool(scene_start), capture_time=float(capture_time))
 
 
+def check_view_count(count: int, field: str) -> None:
+    """InvalidInput unless 1..MAX_VIEWS views were sent; checked before any view is decoded or validated, because
+    that work runs on the server's event loop: a 2 kB .npz of 20 000 one-pixel views took ~1 s of it per
+    10 000 views, and the cap allows millions."""
+    if not 1 <= count <= MAX_VIEWS:
+        raise InvalidInput(field, f"need 1..{MAX_VIEWS} views, got {count}")
+
+
 def stack_views(views: list[View], field: str) -> Views:
     """Views of one instant -> Views (all the same size, 1..MAX_VIEWS of them; with more than one, each
     with its world_T_cam: fusing views needs where each camera stood, and the identity would be a guess)."""
-    if not 1 <= len(views) <= MAX_VIEWS:
-        raise InvalidInput(field, f"need 1..{MAX_VIEWS} views, got {len(views)}")
+    check_view_count(len(views), field)
     size = views[0].depth.shape
     for i, v in enumerate(views):
         if v.depth.shape != size:
@@ -212,14 +226,21 @@ def pair_interval(views0: Views, views1: Views, *, frame_dt: float, field1: str)
         if not c1 > c0:
             raise InvalidInput(f"{field1}.capture_time", f"{c1!r} s is not after the first instant's {c0!r} s: "
                                                          "the capture clock must advance")
-        return c1 - c0
+        return _long_enough(c1 - c0, f"{field1}.capture_time")
     t0, t1 = views0.timestamp, views1.timestamp
     if t0 == 0.0 and t1 == 0.0:
         return max(1, views1.sequence - views0.sequence) * frame_dt
     if not t1 > t0:
         raise InvalidInput(f"{field1}.timestamp", f"{t1!r} s is not after the first instant's {t0!r} s: the "
                                                   "frames' clock must advance (or leave both timestamps 0)")
-    return t1 - t0
+    return _long_enough(t1 - t0, f"{field1}.timestamp")
+
+
+def _long_enough(interval: float, field: str) -> float:
+    if not interval >= MIN_PAIR_INTERVAL_S:
+        raise InvalidInput(field, f"the pair spans {interval:g} s, under {MIN_PAIR_INTERVAL_S:g} s: too short to time "
+                                  "motion over (velocities would overflow)")
+    return interval
 
 
 def require_poses(views: Views, field: str, why: str) -> None:

@@ -13,7 +13,7 @@ from services.inference import codecs
 from services.inference.errors import InvalidInput
 from services.inference.routes import DetectionsResult, MapResult
 from services.inference.runtime import Answer
-from services.inference.validation import Views, View, make_view, stack_views
+from services.inference.validation import Views, View, check_view_count, make_view, stack_views
 
 # ---------------------------------------------------------------------------------- JSON in
 
@@ -82,6 +82,7 @@ def views_from_npz(arrays: dict[str, np.ndarray], suffix: str = "") -> Views:
     if rgb.ndim != 4:
         raise InvalidInput(names["rgb"], f"must have shape V×H×W×3, got {list(rgb.shape)}")
     V = rgb.shape[0]
+    check_view_count(V, f"views{suffix}")
     if pose is None and V > 1:
         raise InvalidInput(names["world_T_cam"], f"missing: each of the {V} views of one instant needs its camera "
                                                  "pose to be fused with the others")
@@ -123,6 +124,7 @@ def view_from_proto(frame: types_pb2.Frame, field: str) -> View:
 
 
 def views_from_proto(frames, field: str) -> Views:
+    check_view_count(len(frames), field)
     return stack_views([view_from_proto(f, f"{field}[{i}]") for i, f in enumerate(frames)], field)
 
 

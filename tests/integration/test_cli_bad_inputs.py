@@ -70,6 +70,9 @@ CASES = [
     _case("bridge-bundle-without-flow", "stream bridge --bundle {bundle} --duration 1",
           "--bundle {bundle} (version"),   # was: named by its version string only
     _case("camera-rate-0", "stream camera --camera-id c --synthetic --rate 0", "--rate"),
+    _case("camera-rate-tiny", "stream camera --camera-id c --synthetic --rate 1e-300", "--rate"),   # was an OverflowError
+    _case("bridge-min-score-nan", "stream bridge --bundle {bundle} --min-score nan", "--min-score"),  # dropped every box
+    _case("bridge-min-score-2", "stream bridge --bundle {bundle} --min-score 2", "--min-score"),
     _case("camera-frames-negative", "stream camera --camera-id c --synthetic --frames -3", "--frames"),
     _case("camera-episode-frames-0", "stream camera --camera-id c --synthetic --episode-frames 0", "--episode-frames"),
     _case("listen-count-0", "stream listen --count 0", "--count"),

@@ -90,3 +90,59 @@ def test_deadline_and_model_errors_reach_the_caller():
             await b.stop()
 
     _run(main())
+
+
+def test_a_cancelled_request_leaves_the_queue_and_is_never_run():
+    release, ran = threading.Event(), []
+
+    def blocked(key, items):
+        ran.extend(items)
+        release.wait(5)
+        return items
+
+    async def main():
+        with ThreadPoolExecutor(1) as ex:
+            b = MicroBatcher(blocked, ex, config=BatchConfig(max_batch=1, max_wait_s=0, max_queue=2))
+            b.start()
+            first = asyncio.ensure_future(b.submit("k", 0, timeout_s=5))
+            await asyncio.sleep(0.05)                 # item 0 runs; the model is busy
+            gone = asyncio.ensure_future(b.submit("k", 1, timeout_s=5))
+            await asyncio.sleep(0.01)
+            assert b.queued == 1
+            gone.cancel()                             # the caller went away (a gRPC cancel, a passed deadline)
+            with pytest.raises(asyncio.CancelledError):
+                await gone
+            assert b.queued == 0                      # its queue slot is free again
+            with pytest.raises(RequestTimeout, match="within 0 s"):
+                await b.submit("k", 2, timeout_s=0)   # a deadline already passed: refused at once, not granted more
+            last = asyncio.ensure_future(b.submit("k", 3, timeout_s=5))
+            release.set()
+            out = [r for r, _ in await asyncio.gather(first, last)]
+            await b.stop()
+            return out
+
+    assert _run(main()) == [0, 3]
+    assert ran == [0, 3]                              # neither the cancelled nor the expired request ran
+
+
+def test_one_bad_request_in_a_batch_fails_alone():
+    calls = []
+
+    def picky(key, items):
+        calls.append(list(items))
+        if any(x < 0 for x in items):
+            raise ValueError(f"negative input among {items}")
+        time.sleep(0.02)
+        return [x * 10 for x in items]
+
+    async def main():
+        with ThreadPoolExecutor(1) as ex:
+            b = MicroBatcher(picky, ex, config=BatchConfig(max_batch=4, max_wait_s=0.05, max_queue=8))
+            b.start()
+            out = await asyncio.gather(*(b.submit("k", x, timeout_s=5) for x in (1, -2, 3)), return_exceptions=True)
+            await b.stop()
+            return out
+
+    out = _run(main())
+    assert [o[0] for o in (out[0], out[2])] == [10, 30] and isinstance(out[1], ValueError)
+    assert calls[0] == [1, -2, 3] and sorted(map(tuple, calls[1:])) == [(-2,), (1,), (3,)]

@@ -75,3 +75,33 @@ def test_npz_is_read_without_pickles_and_with_a_size_cap():
         codecs.load_npz(bomb.getvalue(), max_bytes=2**20)
     with pytest.raises(InvalidInput, match="npz"):
         codecs.load_npz(b"definitely not a zip")
+
+
+def _npy_header(shape: tuple, dtype: str = "<f4") -> bytes:
+    """A .npy version 1.0 file's magic and header, written by hand (the format's spec), without its data."""
+    header = repr({"descr": dtype, "fortran_order": False, "shape": shape}).encode()
+    header += b" " * (-(10 + len(header) + 1) % 64) + b"\n"
+    return b"\x93NUMPY\x01\x00" + struct.pack("<H", len(header)) + header
+
+
+def test_a_header_declaring_more_than_its_bytes_is_refused_before_any_allocation():
+    # np.load would allocate the declared TiB first (a MemoryError, i.e. a 500)
+    body = io.BytesIO()
+    with zipfile.ZipFile(body, "w") as zf:
+        zf.writestr("rgb.npy", _npy_header((2**40,)) + b"\0" * 16)
+    with pytest.raises(InvalidInput, match=r"declares \[1099511627776\] float32 .* but 16 bytes follow") as e:
+        codecs.load_npz(body.getvalue())
+    assert e.value.field == "body[rgb]"
+    exact = _npy_header((4,)) + np.arange(4, dtype="<f4").tobytes()   # the hand-written header reads as numpy's
+    assert np.array_equal(codecs.load_npy(exact, "x"), np.arange(4, dtype=np.float32))
+
+
+def test_a_corrupt_deflate_member_is_a_4xx_not_a_zlib_error():
+    body = io.BytesIO()
+    with zipfile.ZipFile(body, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("rgb.npy", codecs.save_npz({"a": np.zeros(1000, np.float32)}))   # compressible content
+    data = bytearray(body.getvalue())
+    start = data.index(b"rgb.npy") + len("rgb.npy")     # the member's compressed bytes follow its local header name
+    data[start + 10:start + 40] = b"\xff" * 30
+    with pytest.raises(InvalidInput, match="not a readable .npz archive"):
+        codecs.load_npz(bytes(data))

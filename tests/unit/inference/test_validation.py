@@ -64,6 +64,9 @@ def _far(z_m: float):
     # finite as float64 but inf once the model's float32 (a JSON body's 1e39 m translation answered null egomotion)
     ({"world_T_cam": _far(1e39)}, "views[1].world_T_cam", "float32"),
     ({"pix_T_cam": K * np.diag([1e39, 1, 1, 1])}, "views[1].pix_T_cam", "float32"),
+    # positive as float64 but 0 or a denormal in float32: unprojection divided by ~0
+    ({"pix_T_cam": K * np.diag([1e-46 / 32, 1, 1, 1])}, "views[1].pix_T_cam", "at least 0.001 px"),
+    ({"pix_T_cam": K * np.diag([1, 1e-40 / 32, 1, 1])}, "views[1].pix_T_cam", "at least 0.001 px"),
 ])
 def test_bad_views_name_the_field(over, field, needle):
     with pytest.raises(InvalidInput) as e:
@@ -127,6 +130,15 @@ def test_pair_interval_reads_the_frames_clock():
         with pytest.raises(InvalidInput) as e:
             pair_interval(_stamped(t0), _stamped(t1), frame_dt=0.2, field1="views1")
         assert e.value.field == "views1.timestamp"
+    # advancing, but by too little to time motion over: velocities would overflow float32 (answered as null)
+    with pytest.raises(InvalidInput, match="too short to time motion") as e:
+        pair_interval(_stamped(1e-300), _stamped(2e-300), frame_dt=0.2, field1="views1")
+    assert e.value.field == "views1.timestamp"
+    with pytest.raises(InvalidInput, match="too short to time motion") as e:
+        pair_interval(_stamped(0.0, capture_time=7.0), _stamped(0.0, capture_time=7.0 + 1e-9), frame_dt=0.2,
+                      field1="views1")
+    assert e.value.field == "views1.capture_time"
+    assert pair_interval(_stamped(1.0), _stamped(1.001), frame_dt=0.2, field1="views1") == pytest.approx(0.001)
 
 
 def test_pair_interval_prefers_the_capture_clock_when_both_frames_carry_it():
@@ -166,3 +178,20 @@ def test_npz_bodies_refuse_unposed_views_and_bad_scalars():
         with pytest.raises(InvalidInput) as e:
             views_from_npz({**posed, name: value}, "0")
         assert e.value.field == name, (name, value)
+
+
+def test_too_many_views_are_refused_before_any_is_decoded(monkeypatch):
+    import services.inference.wire as wire
+    from n3dmap.v1 import types_pb2
+
+    decoded = []
+    monkeypatch.setattr(wire, "make_view", lambda **kw: decoded.append(kw) or None)
+    many = 20000   # one-pixel views: 2 kB compressed, seconds of validation on the event loop one by one
+    body = {"rgb0": np.zeros((many, 1, 1, 3), np.uint8), "depth0": np.ones((many, 1, 1), np.float32),
+            "pix_T_cam0": np.zeros((many, 4, 4), np.float32), "world_T_cam0": np.zeros((many, 4, 4), np.float32)}
+    with pytest.raises(InvalidInput, match=f"need 1..16 views, got {many}") as e:
+        wire.views_from_npz(body, "0")
+    assert e.value.field == "views0"
+    with pytest.raises(InvalidInput, match="need 1..16 views, got 17") as e:
+        wire.views_from_proto([types_pb2.Frame() for _ in range(17)], "views0")
+    assert e.value.field == "views0" and decoded == []
