@@ -17,6 +17,7 @@ from services.cli.argtypes import (DEFAULT_FRAME_DT, FRAME_DT_HELP, frame_rate, 
                                    positive_float, positive_int, saliency_score)
 from services.cli.egomotion_options import add_egomotion_arguments
 from services.cli.moving_options import add_moving_object_arguments, moving_objects_config
+from services.streaming.accounting import IDLE_EVICT_S, MAX_CAMERAS
 from services.streaming.session import add_zenoh_arguments, options_from_args
 
 
@@ -60,6 +61,12 @@ def register(subparsers) -> None:
                         help="one worker thread only: no look-ahead thread encoding the next frame and its "
                              "egomotion beside the current step (that thread is what lets the small preset "
                              "keep up with 10 Hz on 2 cores)")
+    bridge.add_argument("--idle-evict", type=positive_float, default=IDLE_EVICT_S, metavar="S",
+                        help="forget a camera silent for S seconds: its state is freed, its counters go to the "
+                             "status's _retired entry, and its next frame starts a scene (default %(default)g)")
+    bridge.add_argument("--max-cameras", type=positive_int, default=MAX_CAMERAS, metavar="N",
+                        help="cameras tracked at once; frames of one more are dropped and counted under "
+                             "_too_many_cameras (default %(default)d)")
     bridge.add_argument("--bridge-id", default=None, help="id in the liveliness token and status key (default: random)")
     bridge.add_argument("--duration", type=positive_float, default=None, metavar="S",
                         help="stop after S seconds (default: run until SIGINT/SIGTERM)")
@@ -170,7 +177,7 @@ def _run_bridge(args: argparse.Namespace) -> int:
     warm_s = processor.warm_up()  # before "ready": the first frames do not pay the models' one-time costs
     stop = _stop_event()
     bridge = Bridge(processor=processor, zenoh_options=options, cameras=args.cameras, bridge_id=args.bridge_id,
-                    lookahead=args.lookahead)
+                    lookahead=args.lookahead, idle_evict_s=args.idle_evict, max_cameras=args.max_cameras)
     bridge.start()
     print(f"bridge {bridge.bridge_id} ready (models warmed up in {warm_s:.1f} s): bundle {runtime.version}, "
           f"modules {', '.join(runtime.modules)}, "

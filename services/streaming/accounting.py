@@ -20,6 +20,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 LATENCY_WINDOW = 2048  # latencies kept per camera for percentiles
+IDLE_EVICT_S = 300.0     # a bridge forgets a camera silent this long (services.streaming.bridge.Bridge)
+MAX_CAMERAS = 256        # cameras a bridge tracks at once
+RETIRED = "_retired"     # status entry holding the counters of forgotten cameras
+TOO_MANY_CAMERAS = "_too_many_cameras"   # status entry counting the frames of cameras past MAX_CAMERAS
+COUNTERS = ("received", "processed", "dropped", "malformed", "pending", "dropped_behind", "dropped_duplicate",
+            "dropped_out_of_order", "processing_errors", "publisher_restarts", "scene_starts")
 
 
 @dataclass
@@ -79,6 +85,21 @@ class Accounting:
     def add_latency(self, camera: str, latency_ms: float) -> None:
         with self._lock:
             self._cam(camera).latencies_ms.append(latency_ms)
+
+    def retire(self, camera: str, into: str) -> None:
+        """Fold `camera`'s counters into the entry `into` (e.g. "_retired") and forget the camera: the totals
+        stay, the per-camera entry (with its latency window) does not outlive the camera."""
+        with self._lock:
+            stats = self._cameras.pop(camera, None)
+            if stats is None:
+                return
+            total = self._cam(into)
+            for name in COUNTERS:
+                setattr(total, name, getattr(total, name) + getattr(stats, name))
+
+    def __contains__(self, camera: str) -> bool:
+        with self._lock:
+            return camera in self._cameras
 
     def snapshot(self) -> dict[str, dict]:
         with self._lock:

@@ -47,7 +47,7 @@ import zenoh
 
 from services.inference.camera_state import CameraState
 from services.streaming import keys
-from services.streaming.accounting import Accounting
+from services.streaming.accounting import IDLE_EVICT_S, MAX_CAMERAS, RETIRED, TOO_MANY_CAMERAS, Accounting
 from services.streaming.session import ZenohOptions, open_session
 
 log = logging.getLogger("n3dmap.bridge")
@@ -122,15 +122,23 @@ class Bridge:
 
     def __init__(self, *, processor: FrameProcessor, zenoh_options: ZenohOptions, cameras: str = "*",
                  bridge_id: str | None = None, clock: Callable[[], float] = time.time,
-                 lookahead: bool = True) -> None:
+                 lookahead: bool = True, idle_evict_s: float = IDLE_EVICT_S, max_cameras: int = MAX_CAMERAS) -> None:
         """lookahead: run the processor's `encode_ahead` on a second thread (see the module doc); ignored
-        for a processor without it."""
+        for a processor without it. idle_evict_s: a camera that sent nothing for this long is forgotten (its
+        state — the previous frame and its encoding, several MB — freed, its counters folded into the status's
+        "_retired" entry); when it comes back its first frame pairs with nothing, as a scene start.
+        max_cameras: cameras tracked at once; a frame of one more is dropped and counted under
+        "_too_many_cameras" (camera ids that change — hostname-pid, a flood of keys — would otherwise grow the
+        bridge's memory without bound)."""
         self.processor = processor
         self.zenoh_options = zenoh_options
         self.cameras = cameras
         self.bridge_id = bridge_id or uuid.uuid4().hex[:8]
         self.clock = clock
         self.accounting = Accounting()
+        self.idle_evict_s, self.max_cameras = idle_evict_s, max_cameras
+        self._last_seen: dict[str, float] = {}   # per tracked camera: when its latest sample arrived (under _cond)
+        self._busy: str | None = None            # the camera whose frame the worker is handling (under _cond)
         self._slots: dict[str, Parked] = {}
         self._states: dict[str, CameraState] = {}
         self._cond = threading.Condition()
@@ -206,6 +214,10 @@ class Bridge:
                         attachment=sample.attachment.to_bytes() if sample.attachment is not None else None,
                         received_at=self.clock())
         with self._cond:
+            if camera not in self._last_seen and len(self._last_seen) >= self.max_cameras:
+                self.accounting.update(TOO_MANY_CAMERAS, received=1, dropped=1)
+                return
+            self._last_seen[camera] = parked.received_at
             replaced = self._slots.get(camera)
             if replaced is not None:
                 parked.follows_cut = replaced.follows_cut or self._starts_scene(replaced)
@@ -236,6 +248,7 @@ class Bridge:
             while True:
                 if self._stopping:
                     return None
+                self._evict_idle()
                 ready = [c for c, p in self._slots.items() if self._ready(p)]
                 if ready:
                     break
@@ -244,7 +257,25 @@ class Bridge:
             camera = min(ready, key=lambda c: self._slots[c].received_at)
             parked = self._slots.pop(camera)
             self._taken[camera] = parked
+            self._busy = camera
         return camera, parked
+
+    def _evict_idle(self) -> None:
+        """Forget the cameras idle for idle_evict_s (under _cond, on the worker thread, which alone touches
+        _states): neither a frame parked nor one being handled, nor claimed by the look-ahead."""
+        now = self.clock()
+        for camera, seen in list(self._last_seen.items()):
+            if now - seen < self.idle_evict_s or camera in self._slots or camera == self._busy:
+                continue
+            taken = self._taken.get(camera)
+            if taken is not None and taken.claimed and not taken.done.is_set():
+                continue
+            del self._last_seen[camera]
+            self._states.pop(camera, None)
+            self._taken.pop(camera, None)
+            self._pending_cut.discard(camera)
+            self.accounting.retire(camera, into=RETIRED)
+            log.info("camera %s idle for %.0f s: its state is freed", camera, now - seen)
 
     def _ready(self, parked: Parked) -> bool:
         """Whether the worker may take `parked`: always without look-ahead, else once the look-ahead is done."""
@@ -321,6 +352,8 @@ class Bridge:
                 # Leaves `pending` only now that the frame sits in its final bucket, so the
                 # identity received = processed + dropped + malformed + pending holds at every instant.
                 self.accounting.update(camera, pending=-1)
+                with self._cond:
+                    self._busy = None
             self._prepare_while_idle(camera)
 
     def _prepare_while_idle(self, camera: str) -> None:

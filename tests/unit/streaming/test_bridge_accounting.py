@@ -309,3 +309,36 @@ def test_look_ahead_runs_beside_the_worker_and_keeps_the_accounting(endpoint):
     finally:
         client.close()
         bridge.stop()
+
+
+def test_idle_cameras_are_forgotten_and_a_flood_of_cameras_is_capped(endpoint):
+    now = [1000.0]
+    processor = JsonProcessor()
+    bridge = Bridge(processor=processor, zenoh_options=ZenohOptions(listen=(endpoint,)), bridge_id="t7",
+                    clock=lambda: now[0], idle_evict_s=60.0, max_cameras=2).start()
+    client = open_session(ZenohOptions(connect=(endpoint,)))
+    try:
+        time.sleep(0.5)
+        for camera, seq in (("a", 0), ("a", 1), ("b", 5)):
+            client.put(keys.rgbd(camera), frame(camera, seq))
+            time.sleep(0.05)
+        wait_until(lambda: processor.seen == [("a", 0), ("a", 1), ("b", 5)])
+        client.put(keys.rgbd("c"), frame("c", 0))            # a third camera while two are tracked: refused, counted
+        wait_until(lambda: bridge.status()["cameras"].get("_too_many_cameras", {}).get("received") == 1)
+        assert bridge.status()["cameras"]["_too_many_cameras"]["dropped"] == 1 and "c" not in bridge.status()["cameras"]
+        assert set(bridge._states) == {"a", "b"}
+        now[0] += 61.0                                       # both silent past the limit: forgotten
+        wait_until(lambda: not bridge._states and "a" not in bridge.status()["cameras"])
+        retired = bridge.status()["cameras"]["_retired"]
+        assert retired["received"] == 3 and retired["processed"] == 3 and balanced(retired)
+        # camera a comes back restarted at sequence 0: a fresh camera again (it was dropped as out of order
+        # while its old state lived), and c now has room
+        client.put(keys.rgbd("a"), frame("a", 0))
+        time.sleep(0.05)
+        client.put(keys.rgbd("c"), frame("c", 0))
+        wait_until(lambda: processor.seen[3:] == [("a", 0), ("c", 0)])
+        stats = bridge.status()["cameras"]
+        assert stats["a"]["processed"] == 1 and stats["a"]["dropped"] == 0 and stats["c"]["processed"] == 1
+    finally:
+        client.close()
+        bridge.stop()
