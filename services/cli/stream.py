@@ -276,6 +276,7 @@ def _run_view(args: argparse.Namespace) -> int:
     where = f" -> {save}" if save is not None else ""
     print(f"viewer: logged {counts.frames} frames ({counts.frames_dropped} dropped while busy), "
           f"{counts.detections} detection messages, {counts.egomotion} egomotion messages"
+          + (f" ({counts.outputs_dropped} dropped while busy)" if counts.outputs_dropped else "")
           + (f", {counts.undecodable} undecodable" if counts.undecodable else "") + where, file=sys.stderr, flush=True)
     return 0
 

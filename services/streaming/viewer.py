@@ -28,6 +28,10 @@ from services.streaming import keys
 from services.streaming.session import ZenohOptions, open_session
 
 FRAME_RING = 32  # frames parked at most; older ones are dropped (and counted) when the sink lags
+# Detections / egomotion messages parked at most. They are what the counts promise and are served first, so
+# the queue only grows when the publisher outpaces the sink for long: then the oldest go (and are counted),
+# rather than memory growing with the backlog.
+OUTPUT_RING = 4096
 EGOMOTION_GRACE_S = 0.5  # after the last wanted Detections, how long its egomotion may take to arrive
 
 
@@ -45,6 +49,7 @@ class StreamSink(Protocol):
 class ViewCounts:
     frames: int = 0
     frames_dropped: int = 0
+    outputs_dropped: int = 0
     detections: int = 0
     egomotion: int = 0
     undecodable: int = 0
@@ -113,6 +118,9 @@ def view(*, zenoh_options: ZenohOptions, camera_id: str, sink: StreamSink, stop:
                     counts.frames_dropped += 1
                 frames.append(item)
             elif stream in ("moving_objects", "egomotion"):
+                if len(outputs) >= OUTPUT_RING:
+                    outputs.popleft()
+                    counts.outputs_dropped += 1
                 outputs.append(item)
             cond.notify()
 
