@@ -124,11 +124,23 @@ class RestClient:
               want_npz: bool = False):
         headers = {"accept": NPZ if want_npz else JSON}
         if self.encoding == "npz":
-            r = self._http.post(path, content=codecs.save_npz(npz_arrays), params=params,
-                                headers={**headers, "content-type": NPZ})
+            r = self._send("POST", path, content=codecs.save_npz(npz_arrays), params=params,
+                           headers={**headers, "content-type": NPZ})
         else:
-            r = self._http.post(path, json=json_body, headers=headers)
+            r = self._send("POST", path, json=json_body, headers=headers)
         return self._decode(r)
+
+    def _send(self, method: str, path: str, **kwargs):
+        """One HTTP request; a transport failure is a ServiceCallError with the gRPC client's names for the same
+        conditions ("timeout"; "not_ready" when the server cannot be reached), not an httpx exception."""
+        import httpx
+
+        try:
+            return self._http.request(method, path, **kwargs)
+        except httpx.TimeoutException as e:
+            raise ServiceCallError("timeout", f"{method} {path}: no answer within the client's timeout ({e})") from None
+        except httpx.TransportError as e:
+            raise ServiceCallError("not_ready", f"{method} {path}: cannot reach the server ({e})") from None
 
     @staticmethod
     def _decode(r):
@@ -184,15 +196,20 @@ class RestClient:
         return {**out, **_boxes_from_dicts(out["boxes"])}
 
     def models(self) -> dict:
-        return self._decode(self._http.get("/v1/models"))
+        return self._decode(self._send("GET", "/v1/models"))
 
     def reload(self, bundle: str | None = None) -> dict:
-        return self._decode(self._http.post("/v1/admin/reload", json={"bundle": bundle}))
+        return self._decode(self._send("POST", "/v1/admin/reload", json={"bundle": bundle}))
 
     def health(self) -> dict:
         """-> {"live": bool, "ready": bool, ...readyz body}."""
-        live = self._http.get("/healthz").status_code == 200
-        r = self._http.get("/readyz")
+        import httpx
+
+        try:
+            live = self._http.get("/healthz").status_code == 200
+            r = self._http.get("/readyz")
+        except httpx.TransportError as e:   # as the gRPC client's health(): an answer, not an exception
+            return {"live": False, "ready": False, "status": f"unreachable ({type(e).__name__})"}
         return {"live": live, "ready": r.status_code == 200, **r.json()}
 
 
@@ -350,20 +367,31 @@ class GrpcClient:
 
         metadata = self._metadata + stream_metadata(level=level, level_ahead=level_ahead, ground_y=ground_y)
 
+        refused: list[ValueError] = []
+
         def requests():
             last: dict[str, int] = {}   # camera_id -> the largest sequence number sent so far
             for f in frames:
                 f = f.batched()
+                if f.rgb.shape[0] != 1:   # a stream frame is one view: the rest would be dropped unsent
+                    refused.append(ValueError(f"stream_moving_objects takes single-view Frames; camera {f.camera_id!r} "
+                                              f"sent {f.rgb.shape[0]} views (send each camera as its own camera_id)"))
+                    return
                 if f.sequence is None:  # not set: the next number after the camera's last, so that it is answered
                     f.sequence = last[f.camera_id] + 1 if f.camera_id in last else 0
                 last[f.camera_id] = max(last.get(f.camera_id, f.sequence), f.sequence)
                 yield frame_proto(f, 0, png=self._png)
+        call = self._stub.StreamMovingObjects(requests(), timeout=timeout_s, metadata=metadata)
         try:
-            for d in self._stub.StreamMovingObjects(requests(), timeout=timeout_s, metadata=metadata):
+            for d in call:
                 yield detections_dict(d)
+            if refused:
+                raise refused[0]
         except self._grpc.RpcError as e:
             code = e.code().name
             raise ServiceCallError(_GRPC_ERRORS.get(code, code.lower()), e.details() or "", status=code) from None
+        finally:   # a caller that stops iterating early ends the call now, not when the generator is collected
+            call.cancel()
 
     def models(self) -> dict:
         from n3dmap.v1 import inference_pb2

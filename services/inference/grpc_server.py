@@ -7,6 +7,7 @@ UNAUTHENTICATED (bearer token). The server binds with SO_REUSEPORT off, so a tak
 
 from __future__ import annotations
 
+import asyncio
 import hmac
 import logging
 import time
@@ -33,6 +34,9 @@ SERVICE_NAME = inference_pb2.DESCRIPTOR.services_by_name["Inference"].full_name
 STABILISE = {inference_pb2.STABILISE_UNSPECIFIED: "poses", inference_pb2.STABILISE_POSES: "poses",
              inference_pb2.STABILISE_EGOMOTION: "egomotion", inference_pb2.STABILISE_NONE: "none"}
 MAX_MESSAGE_BYTES = 64 * 2**20
+# Cameras one StreamMovingObjects call may carry: each keeps its previous frame and that frame's encoding (several
+# MB) for the call's life, so ids that keep changing would grow the server's memory without bound.
+MAX_STREAM_CAMERAS = 64
 _CODES = [(InvalidInput, grpc.StatusCode.INVALID_ARGUMENT), (ModuleUnavailable, grpc.StatusCode.UNIMPLEMENTED),
           (Overloaded, grpc.StatusCode.RESOURCE_EXHAUSTED), (RequestTimeout, grpc.StatusCode.DEADLINE_EXCEEDED),
           (NotReady, grpc.StatusCode.UNAVAILABLE), (ShapeError, grpc.StatusCode.INVALID_ARGUMENT),
@@ -78,6 +82,9 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         try:
             return await fn()
         except (grpc.aio.AbortError, grpc.RpcError):
+            raise
+        except asyncio.CancelledError:   # the client cancelled or its deadline passed: not an OK call
+            status = "CANCELLED"
             raise
         except Exception as e:
             code, message = _failure(rpc, e)
@@ -160,15 +167,25 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             async for frame in request_iterator:
                 received = time.perf_counter()
                 view = wire.view_from_proto(frame, "frame")
+                if frame.camera_id not in states and len(states) >= MAX_STREAM_CAMERAS:
+                    # each camera keeps its previous frame and encoding for the call's life (several MB)
+                    raise Overloaded(f"frame.camera_id: one call streams at most {MAX_STREAM_CAMERAS} cameras; "
+                                     "open another call for more")
                 state = states.setdefault(frame.camera_id, CameraState())
-                if state.verdict(view.sequence) is not None:
-                    continue  # a duplicate or out-of-order frame: dropped, as the bridge drops it
+                kind = state.verdict(view.sequence)
+                if kind is not None:
+                    # a duplicate or out-of-order frame: dropped unanswered, as the bridge drops it, and counted
+                    self.runtime.metrics.stream_dropped.labels(kind).inc()
+                    continue
                 answer = await self.runtime.call_on_model_thread(
                     lambda: stream.step(frame.camera_id, state, view), timeout_s=_deadline(context))
                 state.advance(view)
                 answer.detections.latency_s = time.perf_counter() - received
                 yield answer.detections
         except (grpc.aio.AbortError, grpc.RpcError):
+            raise
+        except asyncio.CancelledError:   # the client cancelled or its deadline passed: not an OK call
+            status = "CANCELLED"
             raise
         except Exception as e:
             code, message = _failure("StreamMovingObjects", e)

@@ -30,6 +30,8 @@ class Metrics:
         self.queue_depth = Gauge("n3dmap_queue_depth", "Requests waiting for a batch", registry=r)
         self.in_flight = Gauge("n3dmap_in_flight", "Requests waiting for or inside a model call", registry=r)
         self.reloads = Counter("n3dmap_reloads", "Bundle reloads by result", ["result"], registry=r)
+        self.stream_dropped = Counter("n3dmap_stream_frames_dropped",
+                                      "StreamMovingObjects frames dropped unanswered, by reason", ["reason"], registry=r)
 
     def observe_batch(self, route: str, batch_size: int, waits_s: list[float], model_s: float) -> None:
         self.batch_size.labels(route).observe(batch_size)

@@ -97,6 +97,42 @@ def core_inputs(frames, suffix: str = "") -> dict:
     return {k + suffix: v for k, v in out.items()}
 
 
+def _stream_dropped(server) -> dict[str, float]:
+    """{reason: count} of n3dmap_stream_frames_dropped in the server's /metrics."""
+    import re
+
+    text = httpx.get(server.url + "/metrics").text
+    return {m["reason"]: float(m["value"]) for m in re.finditer(
+        r'^n3dmap_stream_frames_dropped_total\{reason="(?P<reason>\w+)"\} (?P<value>\S+)$', text, re.M)}
+
+
+def test_a_stream_carries_a_bounded_number_of_cameras(grpc_client):
+    from services.inference.client import ServiceCallError
+    from services.inference.grpc_server import MAX_STREAM_CAMERAS
+
+    first = movers(1)[0]
+    cameras = []
+    for i in range(MAX_STREAM_CAMERAS + 1):
+        f = copy_frames(first)
+        f.camera_id = f"cam{i}"
+        cameras.append(f)
+    with pytest.raises(ServiceCallError) as e:
+        list(grpc_client.stream_moving_objects(cameras))
+    assert e.value.status == "RESOURCE_EXHAUSTED" and f"at most {MAX_STREAM_CAMERAS} cameras" in e.value.detail
+
+
+def test_a_multi_view_frame_is_refused_by_the_stream_client_not_cut_to_its_first_view(grpc_client):
+    two_views = sample_frames(views=2)
+    with pytest.raises(ValueError, match="single-view Frames; camera 'cam0' sent 2 views"):
+        list(grpc_client.stream_moving_objects([two_views]))
+
+
+def copy_frames(frames):
+    import copy
+
+    return copy.copy(frames)
+
+
 def core_boxes(out: dict, min_score: float) -> dict:
     """core.pipeline's padded boxes of item 0 -> the valid rows scored ≥ min_score, best first (numpy)."""
     import torch
@@ -259,8 +295,12 @@ def test_stream_follows_the_bridge_rules_and_answers_as_core_pipeline(server, gr
 
     frames = movers(3, stamps=[100.0, 100.0 + STEP, 100.0 + 3 * STEP])
     duplicate, older = copy.copy(frames[1]), copy.copy(frames[0])
+    dropped_before = _stream_dropped(server)
     out = list(grpc_client.stream_moving_objects([frames[0], frames[1], duplicate, older, frames[2]]))
     assert [d["sequence"] for d in out] == [0, 1, 2] and len(out[0]["boxes"]) == 0
+    after = _stream_dropped(server)   # the two unanswered frames are counted, by reason
+    assert {k: after.get(k, 0) - dropped_before.get(k, 0) for k in ("duplicate", "out_of_order")} == {
+        "duplicate": 1, "out_of_order": 1}
     assert all(d["frame"] == "ref" and d["camera_id"] == "cam0" for d in out)
     boxes = 0
     for before, now, answer in zip(frames, frames[1:], out[1:]):
