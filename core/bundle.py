@@ -129,6 +129,9 @@ def read_bundle_meta(directory: str | os.PathLike) -> dict:
     for key in ("format_version", "preset", "modules"):
         if key not in meta:
             raise BundleError(f"corrupt {path}: missing key {key!r}")
+    if meta["format_version"] != BUNDLE_FORMAT_VERSION:   # first: another version may lay out its modules otherwise
+        raise BundleError(f"{path}: format_version {meta['format_version']} not supported "
+                          f"(this n3dmap reads {BUNDLE_FORMAT_VERSION})")
     modules = meta["modules"]
     if not isinstance(modules, dict):
         raise BundleError(f"corrupt {path}: 'modules' must map a module name to its kind and config, "
@@ -136,9 +139,6 @@ def read_bundle_meta(directory: str | os.PathLike) -> dict:
     for name, entry in modules.items():
         if not (isinstance(entry, dict) and isinstance(entry.get("kind"), str) and isinstance(entry.get("config"), dict)):
             raise BundleError(f"corrupt {path}: module {name!r} needs a 'kind' (string) and a 'config' (object)")
-    if meta["format_version"] != BUNDLE_FORMAT_VERSION:
-        raise BundleError(f"{path}: format_version {meta['format_version']} not supported "
-                          f"(this n3dmap reads {BUNDLE_FORMAT_VERSION})")
     return meta
 
 

@@ -65,6 +65,20 @@ def unit_fraction(text: str) -> float:
     return value
 
 
+# = services.inference.validation.MIN_PAIR_INTERVAL_S (a test keeps them equal): the shortest interval a pair
+# of frames may span, so that velocities (displacement / interval) stay finite.
+MIN_INTERVAL_S = 1e-4
+
+
+def frame_interval(text: str) -> float:
+    """Seconds between frames (--frame-dt, --capture-dt), at least MIN_INTERVAL_S: a pair over a shorter
+    interval is refused (its velocities would overflow), so such a setting would refuse every frame."""
+    value = _number(text, float, f"a number of seconds ≥ {MIN_INTERVAL_S:g}")
+    if not value >= MIN_INTERVAL_S:
+        raise argparse.ArgumentTypeError(f"must be at least {MIN_INTERVAL_S:g} s, got {text}")
+    return value
+
+
 def saliency_score(text: str) -> float:
     """A moving-object score threshold in [−1, 1] (the centre-surround saliency the boxes are scored by)."""
     value = _number(text, float, "a number in [-1, 1]")

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import os
 
-from services.cli.argtypes import DEFAULT_FRAME_DT, FRAME_DT_HELP, non_negative_float, port, positive_float, positive_int
+from services.cli.argtypes import (DEFAULT_FRAME_DT, FRAME_DT_HELP, frame_interval, non_negative_float, port,
+                                   positive_float, positive_int)
 from services.cli.egomotion_options import add_egomotion_arguments
 from services.cli.moving_options import add_moving_object_arguments, moving_objects_config
 
@@ -29,7 +30,7 @@ def register(subparsers) -> None:
     p.add_argument("--max-wait-ms", type=non_negative_float, default=2.0, help="longest wait to fill a batch (default 2)")
     p.add_argument("--queue", type=positive_int, default=64, help="waiting requests before 429 (default 64)")
     p.add_argument("--timeout", type=positive_float, default=30.0, help="per-request deadline in seconds (default 30)")
-    p.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
+    p.add_argument("--frame-dt", type=frame_interval, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
     add_moving_object_arguments(p)  # the moving-objects route and both gRPC calls
     add_egomotion_arguments(p)
     p.add_argument("--max-body-mb", type=positive_float, default=64.0, help="largest request body (default 64 MB)")

@@ -13,8 +13,8 @@ import threading
 import time
 from pathlib import Path
 
-from services.cli.argtypes import (DEFAULT_FRAME_DT, FRAME_DT_HELP, frame_rate, non_negative_float, non_negative_int,
-                                   positive_float, positive_int, saliency_score)
+from services.cli.argtypes import (DEFAULT_FRAME_DT, FRAME_DT_HELP, frame_interval, frame_rate, non_negative_float,
+                                   non_negative_int, positive_float, positive_int, saliency_score)
 from services.cli.egomotion_options import add_egomotion_arguments
 from services.cli.moving_options import add_moving_object_arguments, moving_objects_config
 from services.streaming.accounting import IDLE_EVICT_S, MAX_CAMERAS
@@ -44,7 +44,7 @@ def register(subparsers) -> None:
                         help="drop boxes whose centre-surround saliency, in [-1, 1], is below this (default 0)")
     add_moving_object_arguments(bridge)
     add_egomotion_arguments(bridge)  # the splat stage by default: a 10 Hz stream cannot pay a TSDF stage
-    bridge.add_argument("--frame-dt", type=positive_float, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
+    bridge.add_argument("--frame-dt", type=frame_interval, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
     bridge.add_argument("--level", action="store_true",
                         help="map (and box) each frame in its camera levelled to gravity (frame \"level\": the camera's "
                              "centre and heading, Y down) instead of the camera itself: upright boxes, a level "
@@ -89,7 +89,7 @@ def register(subparsers) -> None:
     camera.add_argument("--moving-ego", action="store_true", help="synthetic: the ego (and camera) moves")
     camera.add_argument("--view", type=non_negative_int, default=0, help="dataset: which view of each record to publish")
     camera.add_argument("--loop", action="store_true", help="dataset: start over at the end")
-    camera.add_argument("--capture-dt", type=positive_float, default=None, metavar="S",
+    camera.add_argument("--capture-dt", type=frame_interval, default=None, metavar="S",
                         help="dataset: seconds between a record's frames when they were captured, sent as each "
                              "frame's capture_time so that motion is measured in capture time whatever --rate "
                              "replays it at (default: the synthetic world's step for a generated dataset, else "

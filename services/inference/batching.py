@@ -94,9 +94,10 @@ class MicroBatcher:
         try:
             return await asyncio.wait_for(asyncio.shield(pending.future), timeout_s)
         except (asyncio.TimeoutError, asyncio.CancelledError) as e:
-            # Timed out, or the caller went away (a gRPC client cancelled, its deadline passed, an HTTP client
-            # disconnected): a request still queued leaves the queue, so that nobody's model time and no queue
-            # slot goes to an answer no one will read; one already in a model call finishes unread.
+            # Timed out, or the caller's task was cancelled (a gRPC client cancelled or its deadline passed; an HTTP
+            # client that disconnects does not cancel its request under uvicorn, so it still runs): a request
+            # still queued leaves the queue, so that no model time and no queue slot goes to an answer no one
+            # will read; one already in a model call finishes unread.
             if pending in self._queue:
                 self._queue.remove(pending)
             pending.future.cancel()
@@ -175,6 +176,9 @@ class MicroBatcher:
                 return [(None, e)]
         outcomes = []
         for p in batch:
+            if p.future.done():   # its caller timed out or went away meanwhile: no model time for it
+                outcomes.append((None, None))
+                continue
             try:
                 outcomes.append(((await self._call(loop, [p]))[0], None))
             except Exception as e:

@@ -273,6 +273,10 @@ class Bridge:
             del self._last_seen[camera]
             self._states.pop(camera, None)
             self._taken.pop(camera, None)
+            for key in (keys.moving_objects(camera), keys.egomotion(camera)):   # its declarations on the router too
+                publisher = self._publishers.pop(("pub", key), None)
+                if publisher is not None:
+                    publisher.undeclare()
             self._pending_cut.discard(camera)
             self.accounting.retire(camera, into=RETIRED)
             log.info("camera %s idle for %.0f s: its state is freed", camera, now - seen)

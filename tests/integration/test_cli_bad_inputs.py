@@ -71,6 +71,8 @@ CASES = [
           "--bundle {bundle} (version"),   # was: named by its version string only
     _case("camera-rate-0", "stream camera --camera-id c --synthetic --rate 0", "--rate"),
     _case("camera-rate-tiny", "stream camera --camera-id c --synthetic --rate 1e-300", "--rate"),   # was an OverflowError
+    _case("bridge-frame-dt-tiny", "stream bridge --bundle {bundle} --frame-dt 1e-300", "--frame-dt"),
+    _case("camera-capture-dt-tiny", "stream camera --camera-id c --synthetic --capture-dt 1e-9", "--capture-dt"),
     _case("bridge-min-score-nan", "stream bridge --bundle {bundle} --min-score nan", "--min-score"),  # dropped every box
     _case("bridge-min-score-2", "stream bridge --bundle {bundle} --min-score 2", "--min-score"),
     _case("camera-frames-negative", "stream camera --camera-id c --synthetic --frames -3", "--frames"),

@@ -327,8 +327,10 @@ def test_idle_cameras_are_forgotten_and_a_flood_of_cameras_is_capped(endpoint):
         wait_until(lambda: bridge.status()["cameras"].get("_too_many_cameras", {}).get("received") == 1)
         assert bridge.status()["cameras"]["_too_many_cameras"]["dropped"] == 1 and "c" not in bridge.status()["cameras"]
         assert set(bridge._states) == {"a", "b"}
+        assert ("pub", keys.moving_objects("a")) in bridge._publishers
         now[0] += 61.0                                       # both silent past the limit: forgotten
         wait_until(lambda: not bridge._states and "a" not in bridge.status()["cameras"])
+        assert not bridge._publishers                        # their publishers undeclared with them
         retired = bridge.status()["cameras"]["_retired"]
         assert retired["received"] == 3 and retired["processed"] == 3 and balanced(retired)
         # camera a comes back restarted at sequence 0: a fresh camera again (it was dropped as out of order

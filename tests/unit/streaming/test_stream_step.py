@@ -336,7 +336,10 @@ def test_cache_is_keyed_by_sequence(bundle_dir, frames):
 def test_cli_defaults_are_the_pipelines():
     # services/cli/argtypes.py keeps copies, so that parsing the command line does not load torch
     from core.pipeline.moving_boxes import DEFAULT_DT
-    from services.cli.argtypes import DEFAULT_FRAME_DT, DEFAULT_MIN_OBJECT_SPEED
+    from services.cli.argtypes import DEFAULT_FRAME_DT, DEFAULT_MIN_OBJECT_SPEED, MIN_INTERVAL_S
+    from services.inference.validation import MIN_PAIR_INTERVAL_S
+
+    assert MIN_INTERVAL_S == MIN_PAIR_INTERVAL_S
 
     assert DEFAULT_FRAME_DT == DEFAULT_DT
     assert DEFAULT_MIN_OBJECT_SPEED == MovingObjectsConfig.min_object_speed
