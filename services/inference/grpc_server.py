@@ -98,18 +98,22 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
 
     async def Map(self, request: inference_pb2.MapRequest, context):
         async def run():
-            item = MapInput(views=wire.views_from_proto(request.views, "views"), features=request.features)
+            item = MapInput(views=await wire.off_loop(wire.views_from_proto, request.views, "views"),
+                            features=request.features)
             answer = await self.runtime.infer("map", item, timeout_s=_deadline(context))
             arrays = {k: codecs.numpy_to_tensor(v) for k, v in wire.map_arrays(answer.result).items()}
             return inference_pb2.MapResponse(info=wire.info_proto(answer), grid=self._grid(), **arrays)
         return await self._call("Map", context, run)
 
-    def _views(self, request) -> tuple:
-        return wire.views_from_proto(request.views0, "views0"), wire.views_from_proto(request.views1, "views1")
+    async def _views(self, request) -> tuple:
+        """The pair's two instants, decoded off the event loop (wire.off_loop says why)."""
+        return await wire.off_loop(lambda: (wire.views_from_proto(request.views0, "views0"),
+                                       wire.views_from_proto(request.views1, "views1")))
 
     async def Egomotion(self, request: inference_pb2.PairRequest, context):
         async def run():
-            answer = await self.runtime.infer("egomotion", pair_input(*self._views(request)), timeout_s=_deadline(context))
+            answer = await self.runtime.infer("egomotion", pair_input(*await self._views(request)),
+                                              timeout_s=_deadline(context))
             return inference_pb2.EgomotionResponse(info=wire.info_proto(answer),
                                                    cam0_T_cam1=codecs.numpy_to_tensor(answer.result.cam0_T_cam1))
         return await self._call("Egomotion", context, run)
@@ -117,7 +121,7 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
     async def Flow(self, request: inference_pb2.FlowRequest, context):
         async def run():
             stabilise = STABILISE.get(request.stabilise, f"enum value {request.stabilise}")
-            answer = await self.runtime.infer("flow", flow_input(*self._views(request), stabilise),
+            answer = await self.runtime.infer("flow", flow_input(*await self._views(request), stabilise),
                                               timeout_s=_deadline(context))
             return inference_pb2.FlowResponse(info=wire.info_proto(answer), grid=self._grid(),
                                               flow=codecs.numpy_to_tensor(answer.result.flow))
@@ -125,7 +129,7 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
 
     async def Detect(self, request: inference_pb2.DetectRequest, context):
         async def run():
-            views = wire.views_from_proto(request.views, "views")
+            views = await wire.off_loop(wire.views_from_proto, request.views, "views")
             item = DetectInput(views=views, min_score=check_min_score(request.min_score))
             answer = await self.runtime.infer("detect", item, timeout_s=_deadline(context))
             return inference_pb2.DetectionsResponse(info=wire.info_proto(answer), detections=wire.detections_proto(
@@ -134,7 +138,7 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
 
     async def MovingObjects(self, request: inference_pb2.MovingObjectsRequest, context):
         async def run():
-            views0, views1 = self._views(request)
+            views0, views1 = await self._views(request)
             score = check_min_score(request.min_score, low=-1.0) if request.HasField("min_score") else -1.0
             item = moving_input(views0, views1, min_score=score, frame_dt=self.runtime.config.frame_dt,
                                 modules=self.runtime.modules, config=self.runtime.config.moving_objects)
@@ -166,7 +170,7 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             states: dict[str, CameraState] = {}
             async for frame in request_iterator:
                 received = time.perf_counter()
-                view = wire.view_from_proto(frame, "frame")
+                view = await wire.off_loop(wire.view_from_proto, frame, "frame")
                 if frame.camera_id not in states and len(states) >= MAX_STREAM_CAMERAS:
                     # each camera keeps its previous frame and encoding for the call's life (several MB)
                     raise Overloaded(f"frame.camera_id: one call streams at most {MAX_STREAM_CAMERAS} cameras; "

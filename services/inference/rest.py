@@ -123,11 +123,11 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
         ctype = request.headers.get("content-type", "application/json").split(";")[0].strip().lower()
         body = await request.body()
         if ctype in BINARY_TYPES:
-            return "npz", codecs.load_npz(body, "body")
+            return "npz", await wire.off_loop(codecs.load_npz, body, "body")
         if ctype not in ("application/json", ""):
             raise _UnsupportedMedia(ctype)
         try:
-            return "json", model.model_validate_json(body)
+            return "json", await wire.off_loop(model.model_validate_json, body)
         except ValidationError as e:
             errs = e.errors()
             loc = ".".join(str(p) for p in errs[0]["loc"]) if errs else "body"
@@ -158,9 +158,10 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
                         features: Annotated[bool, Query(description="binary bodies: return features")] = False):
         kind, body = await parse(request, schemas.MapRequestJSON)
         if kind == "json":
-            item = MapInput(views=wire.views_from_json(body.views, "views"), features=body.features)
+            item = MapInput(views=await wire.off_loop(wire.views_from_json, body.views, "views"),
+                            features=body.features)
         else:
-            item = MapInput(views=wire.views_from_npz(body), features=features)
+            item = MapInput(views=await wire.off_loop(wire.views_from_npz, body), features=features)
         answer = await runtime.infer("map", item)
         if wants_npz(request):
             return npz_response(answer, wire.map_arrays(answer.result), {"grid": grid()})
@@ -170,11 +171,12 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
     async def pair_item(request: Request, model) -> tuple[Any, Any]:
         """(the JSON body, or None for .npz, (views0, views1))."""
         kind, body = await parse(request, model)
-        if kind == "json":
-            v0, v1 = wire.views_from_json(body.views0, "views0"), wire.views_from_json(body.views1, "views1")
-        else:
-            v0, v1 = wire.views_from_npz(body, "0"), wire.views_from_npz(body, "1")
-        return body if kind == "json" else None, (v0, v1)
+
+        def decode():
+            if kind == "json":
+                return wire.views_from_json(body.views0, "views0"), wire.views_from_json(body.views1, "views1")
+            return wire.views_from_npz(body, "0"), wire.views_from_npz(body, "1")
+        return body if kind == "json" else None, await wire.off_loop(decode)
 
     @app.post("/v1/egomotion", dependencies=guarded, response_model=schemas.EgomotionResponseJSON, tags=["inference"],
               summary="Frame pair -> cam0_T_cam1 (rigid 4×4)",
@@ -213,7 +215,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
     async def detect_route(request: Request,
                            min_score: Annotated[float, Query(ge=0, le=1, description="binary bodies")] = 0.0):
         kind, body = await parse(request, schemas.DetectRequestJSON)
-        views = wire.views_from_json(body.views, "views") if kind == "json" else wire.views_from_npz(body)
+        views = await (wire.off_loop(wire.views_from_json, body.views, "views") if kind == "json"
+                       else wire.off_loop(wire.views_from_npz, body))
         score = body.min_score if kind == "json" else check_min_score(min_score)
         answer = await runtime.infer("detect", DetectInput(views=views, min_score=score))
         return detections_json(answer, views)

@@ -6,6 +6,8 @@ encoders turn route results (routes.py) into JSON dicts or protobuf messages.
 
 from __future__ import annotations
 
+import asyncio
+
 import numpy as np
 
 from n3dmap.v1 import inference_pb2, types_pb2
@@ -14,6 +16,14 @@ from services.inference.errors import InvalidInput
 from services.inference.routes import DetectionsResult, MapResult
 from services.inference.runtime import Answer
 from services.inference.validation import Views, View, check_view_count, make_view, stack_views
+
+
+async def off_loop(fn, *args):
+    """fn(*args) on a worker thread: decoding and validating a request body (JSON parsing, base64, PNG, .npz,
+    per-view checks) is CPU work of up to seconds for a large body, and on the event loop it would stall every
+    other request, the gRPC server that shares the loop, and the liveness probe."""
+    return await asyncio.to_thread(fn, *args)
+
 
 # ---------------------------------------------------------------------------------- JSON in
 
