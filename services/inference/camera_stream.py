@@ -6,8 +6,9 @@ The transport keeps one `CameraState` per camera and drops duplicate and out-of-
 with and gives empty Detections. Every later frame runs one `core.pipeline.moving_step` between the
 previous frame and itself — egomotion once (`cam0_T_cam1`, previous camera to current), stabilised 3D flow,
 boxes in `ref` = the camera at the previous frame — with the previous frame's FrameEncoding taken from
-`CameraState.extra`, keyed by its sequence number and the bundle version so that a hot reload or a reset
-never mixes stale tensors in. `prepare` makes that encoding while the transport waits for the next
+`CameraState.extra`, keyed by its sequence number and the bundle's load (version and load generation) so
+that a hot reload — even of a bundle replaced in place under the same version — or a reset never mixes
+stale tensors in. `prepare` makes that encoding while the transport waits for the next
 frame, which takes the map of the previous frame off the next frame's latency. The pair's interval comes
 from the frames' capture times, else timestamps ((seq1 − seq0) × `frame_dt` only when neither is given; see
 routes.moving_interval). Answers equal the moving_objects route's for the same pair
@@ -43,13 +44,13 @@ LEVEL_FRAME = "level"  # the boxes' frame with `level=True`: the previous frame'
 
 @dataclass(frozen=True)
 class AheadEncoding:
-    """What `MovingStream.encode_ahead` made of a frame before its step, tagged with the frame and the bundle
-    version so that a step uses it only for that frame and that bundle (a hot reload never mixes stale
+    """What `MovingStream.encode_ahead` made of a frame before its step, tagged with the frame and the bundle's
+    load (`MovingStream._bundle_now`'s key) so that a step uses it only for that frame and that load (a reload never mixes stale
     tensors in): its own-ref FrameEncoding, and the egomotion from `ego_previous` (the frame expected to
     be its step's previous frame) to it, when that was known."""
 
     frame: View
-    bundle_version: str
+    bundle_key: str
     encoding: FrameEncoding
     ego_previous: View | None = None
     ego_estimate: dict | None = None  # core.pipeline.egomotion.egomotion_from_volumes' answer (B = 1)
@@ -96,7 +97,7 @@ class MovingStream:
         self.box_frame = LEVEL_FRAME if self.level else BOX_FRAME
         self._stages: dict[str, deque] = {}
         self._stages_lock = threading.Lock()
-        self._warm: set[tuple] = set()  # (bundle version, image size) pairs already warmed up
+        self._warm: set[tuple] = set()  # (bundle load key, image size) pairs already warmed up
 
     # -- the map frame ------------------------------------------------------------------------------
     def _world_T_ref(self, frame: View) -> torch.Tensor | None:
@@ -118,22 +119,30 @@ class MovingStream:
         return frame.world_T_cam if world_T_ref is None else world_T_ref[0].cpu().numpy()
 
     # -- the per-camera cache ----------------------------------------------------------------------
-    def _cached(self, state: CameraState, sequence: int, version: str) -> FrameEncoding | None:
+    def _bundle_now(self) -> tuple:
+        """(bundle, version, cache key) of one load, read at once (a reload swaps the load on another thread).
+        The key — the version and the load's generation — is what cached encodings are tagged with: a bundle
+        replaced in place and reloaded keeps its version (the run's name), and must not reuse the old weights'
+        encodings. Answers carry the version."""
+        loaded = self.runtime.loaded
+        return loaded.bundle, loaded.version, f"{loaded.version}#{loaded.generation}"
+
+    def _cached(self, state: CameraState, sequence: int, key: str) -> FrameEncoding | None:
         extra = state.extra
-        if self.reuse and extra.get("sequence") == sequence and extra.get("bundle_version") == version:
+        if self.reuse and extra.get("sequence") == sequence and extra.get("bundle_key") == key:
             return extra.get("encoding")
         return None
 
-    def _remember(self, state: CameraState, sequence: int, version: str, encoding: FrameEncoding) -> None:
-        state.extra.update(sequence=sequence, bundle_version=version, encoding=encoding)
+    def _remember(self, state: CameraState, sequence: int, key: str, encoding: FrameEncoding) -> None:
+        state.extra.update(sequence=sequence, bundle_key=key, encoding=encoding)
 
     def prepare(self, camera: str, state: CameraState) -> None:
         """Idle-time work: encode `state.previous` (the last processed frame) for the next step."""
         previous = state.previous
         if not self.reuse or previous is None:
             return
-        bundle, version = self.runtime.bundle, self.runtime.version
-        cached = self._cached(state, previous.sequence, version)
+        bundle, _, key = self._bundle_now()
+        cached = self._cached(state, previous.sequence, key)
         if is_complete(cached, bundle):
             return
         timings: dict[str, float] = {}
@@ -141,7 +150,7 @@ class MovingStream:
         with torch.inference_mode():
             encoding = encode_previous(bundle, **tensors, world_T_ref=self._world_T_ref(previous),
                                        cached=cached, fit_ground=self.config.ground_margin is not None, timings=timings)
-        self._remember(state, previous.sequence, version, encoding)
+        self._remember(state, previous.sequence, key, encoding)
         self._record({f"idle_{k}": v for k, v in timings.items()})
 
     def encode_ahead(self, frame: View, previous: AheadEncoding | None = None) -> AheadEncoding:
@@ -152,7 +161,7 @@ class MovingStream:
         of the frame's own work (its depth evidence, the flow module's encoding, the map), which only the
         step after reads, is left to `prepare` on the worker, which has the time to spare: the two threads
         then carry about equal shares. Safe beside `step`: both only read the bundle."""
-        bundle, version = self.runtime.bundle, self.runtime.version
+        bundle, _, key = self._bundle_now()
         timings: dict[str, float] = {}
         tensors = views_tensors([stack_views([frame], "frame")], self.runtime.device)
         ego_previous, ego_estimate = None, None
@@ -160,7 +169,7 @@ class MovingStream:
             world_T_ref1 = self._world_T_ref(frame)
             encoding = encode_previous(bundle, **tensors, world_T_ref=world_T_ref1, evidence=False, features=False,
                                        flow_encoding=False, timings=timings)
-            usable = (previous is not None and not frame.scene_start and previous.bundle_version == version
+            usable = (previous is not None and not frame.scene_start and previous.bundle_key == key
                       and "egomotion" in bundle.modules
                       and previous.frame.depth.shape == frame.depth.shape
                       and previous.encoding.ego_features is not None and encoding.ego_features is not None)
@@ -178,7 +187,7 @@ class MovingStream:
                 ego_previous = previous.frame
                 timings["egomotion"] = time.perf_counter() - started
         self._record({f"ahead_{k}": v for k, v in timings.items()})
-        return AheadEncoding(frame=frame, bundle_version=version, encoding=encoding, ego_previous=ego_previous,
+        return AheadEncoding(frame=frame, bundle_key=key, encoding=encoding, ego_previous=ego_previous,
                              ego_estimate=ego_estimate)
 
     def warm_up(self) -> float:
@@ -190,29 +199,29 @@ class MovingStream:
         from core.geometry.camera import intrinsics_from_fov
         from services.inference.validation import make_view
 
-        bundle, version = self.runtime.bundle, self.runtime.version
+        bundle, _, key = self._bundle_now()
         camera = bundle.preset.camera
         frame = make_view(rgb=np.full((camera.H, camera.W, 3), 128, np.uint8),
                           depth=np.full((camera.H, camera.W), 10.0, np.float32),
                           pix_T_cam=intrinsics_from_fov(camera.H, camera.W, camera.hfov_deg)[0].numpy(),
                           world_T_cam=np.eye(4, dtype=np.float32), field="warm-up")
         started = time.perf_counter()
-        self._warm_up(bundle, version, frame)
+        self._warm_up(bundle, key, frame)
         if "egomotion" in bundle.modules:  # the look-ahead's own path (encode, then align against a frame)
             self.encode_ahead(frame, self.encode_ahead(frame))
         return time.perf_counter() - started
 
-    def _warm_up(self, bundle, version: str, frame: View) -> None:
+    def _warm_up(self, bundle, key: str, frame: View) -> None:
         """Run one throwaway pair step (the frame with itself) the first time a bundle meets an image size.
         Why: the first steps pay one-time costs (oneDNN builds its kernels for each new shape, the allocator
         grows its heap); measured at the small preset, the first three answered frames took 187–233 ms
         end to end against a median of 121 ms. A camera's first frame has no pair to answer, so its
         (empty) answer carries that cost instead of the first real answers."""
-        key = (version, tuple(frame.depth.shape))
+        warm = (key, tuple(frame.depth.shape))
         with self._stages_lock:
-            if key in self._warm:
+            if warm in self._warm:
                 return
-            self._warm.add(key)
+            self._warm.add(warm)
         started = time.perf_counter()
         with torch.inference_mode():
             moving_step(bundle, **pair_tensors([stack_views([frame], "frame")], [stack_views([frame], "frame")],
@@ -225,11 +234,11 @@ class MovingStream:
         the frame's `encode_ahead`, when made. Raises InvalidInput when the pair cannot be answered without
         guessing (a clock that does not advance, missing poses a bundle without egomotion needs)."""
         started = time.perf_counter()
-        bundle, version = self.runtime.bundle, self.runtime.version  # one bundle for the whole step
+        bundle, version, key = self._bundle_now()  # one bundle for the whole step
         views1 = stack_views([frame], "frame")
         current, ego_estimate = None, None
         previous = state.previous
-        if self.reuse and ahead is not None and ahead.bundle_version == version and ahead.frame is frame:
+        if self.reuse and ahead is not None and ahead.bundle_key == key and ahead.frame is frame:
             current = ahead.encoding
             if previous is not None and ahead.ego_previous is previous:
                 ego_estimate = ahead.ego_estimate
@@ -238,8 +247,8 @@ class MovingStream:
             # nothing to compare with yet.
             state.extra.clear()
             if current is not None:  # but its own-ref work is the next step's frame 0
-                self._remember(state, frame.sequence, version, current)
-            self._warm_up(bundle, version, frame)
+                self._remember(state, frame.sequence, key, current)
+            self._warm_up(bundle, key, frame)
             world_T_ref = self._world_T_ref(frame)  # an unposed frame is refused now, not only at its pair
             empty = types_pb2.Detections(frame=self.box_frame, bundle_version=version, camera_id=camera,
                                          sequence=frame.sequence, source_timestamp=frame.timestamp,
@@ -254,10 +263,10 @@ class MovingStream:
         levels = {"world_T_ref0": self._world_T_ref(previous), "world_T_ref1": self._world_T_ref(frame)}
         with torch.inference_mode():
             out = moving_step(bundle, **pair, **levels, config=self.config,
-                              previous=self._cached(state, previous.sequence, version), current=current,
+                              previous=self._cached(state, previous.sequence, key), current=current,
                               ego_estimate=ego_estimate, dt=dt, timings=timings)
         # This frame's own-ref work (its egomotion volume) is the next step's previous-frame cache.
-        self._remember(state, frame.sequence, version, out["current"])
+        self._remember(state, frame.sequence, key, out["current"])
         egomotion = None
         if "cam0_T_cam1" in out:
             egomotion = inference_pb2.EgomotionResponse(

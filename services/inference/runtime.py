@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import itertools
 import json
 import logging
 import time
@@ -80,6 +81,7 @@ class _Loaded:
     version: str
     path: str
     loaded_at: float
+    generation: int = 0   # which load of this process: tells apart two loads of one version (weights replaced in place)
 
 
 def bundle_version(bundle) -> str:
@@ -103,7 +105,11 @@ def _load(path: str, device: torch.device, *, egomotion_fine: str = "module") ->
             ego.fine = None  # no fine stage: every pipeline path then skips it
         elif egomotion_fine == "splat":
             ego.fine = FineAlignment(kind="splat", factor=2)
-    return _Loaded(bundle=bundle, version=bundle_version(bundle), path=str(path), loaded_at=time.time())
+    return _Loaded(bundle=bundle, version=bundle_version(bundle), path=str(path), loaded_at=time.time(),
+                   generation=next(_LOAD_GENERATIONS))
+
+
+_LOAD_GENERATIONS = itertools.count(1)
 
 
 class Runtime:
@@ -146,6 +152,12 @@ class Runtime:
         self._model_thread.shutdown(wait=True)
 
     # --- what is loaded --------------------------------------------------------------------
+    @property
+    def loaded(self) -> _Loaded:
+        """The current load (bundle, version, generation) as one snapshot: a reload swaps it on another thread,
+        so code that needs the bundle and its identity together reads them from one `loaded`."""
+        return self._loaded
+
     @property
     def bundle(self):
         return self._loaded.bundle

@@ -305,8 +305,9 @@ def test_a_bundle_without_egomotion_needs_the_frames_poses(bundle_dir, frames):
     """Without an egomotion module the step stabilises with the poses: a frame without one is refused."""
     full = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu")).bundle
     bundle = Bundle(preset=TINY, modules={k: m for k, m in full.modules.items() if k != "egomotion"})
-    stream = MovingStream(SimpleNamespace(bundle=bundle, version="v", device=torch.device("cpu")), min_score=-1.0,
-                          frame_dt=0.2)
+    loaded = SimpleNamespace(bundle=bundle, version="v", generation=1)
+    stream = MovingStream(SimpleNamespace(loaded=loaded, bundle=bundle, version="v", device=torch.device("cpu")),
+                          min_score=-1.0, frame_dt=0.2)
     unposed = [make_view(rgb=f["rgb"], depth=f["depth"], pix_T_cam=f["pix_T_cam"], field="frame", sequence=i,
                          timestamp=1.0 + i) for i, f in enumerate(frames[:2])]
     state = CameraState()
@@ -331,6 +332,25 @@ def test_cache_is_keyed_by_sequence(bundle_dir, frames):
     processor.process("c", state, views[2])
     assert processor.stats()["map_previous"]["count"] == 1  # frame 1 was encoded, frame 0's cache ignored
     assert state.extra["sequence"] == 2 and state.extra["encoding"] is not stale
+
+
+def test_cache_is_keyed_by_the_bundle_load_not_only_its_version(bundle_dir, frames):
+    """A bundle replaced in place and reloaded (SIGHUP) keeps its version (the run's name): the encoding made
+    with the old load is not reused by the first step after the reload."""
+    from services.inference.runtime import _load
+
+    runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
+    processor = RuntimeProcessor(runtime, min_score=-1.0)
+    views = decoded(frames)
+    state = CameraState()
+    processor.process("c", state, views[0])
+    state.advance(views[0])
+    processor.prepare("c", state)             # frame 0 encoded with the first load
+    version = runtime.version
+    runtime._loaded = _load(str(bundle_dir), runtime.device, egomotion_fine=runtime.config.egomotion_fine)
+    assert runtime.version == version         # what a reload of the same directory does
+    processor.process("c", state, views[1])
+    assert processor.stats().get("map_previous", {}).get("count", 0) == 1   # re-encoded with the new load
 
 
 def test_cli_defaults_are_the_pipelines():
