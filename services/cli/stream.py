@@ -141,11 +141,11 @@ def default_bridge_threads() -> int:
     return max(1, min(8, (os.cpu_count() or 1) - 1))
 
 
-def _check_camera_id(camera_id: str) -> None:
+def _check_camera_id(camera_id: str, flag: str = "--camera-id") -> None:
     from services.cli.main import CliError
 
     if not camera_id or any(c in camera_id for c in "/*?#$ "):
-        raise CliError(f"--camera-id {camera_id!r} must be a single key chunk without '/', '*', '?', '#', '$' or spaces")
+        raise CliError(f"{flag} {camera_id!r} must be a single key chunk without '/', '*', '?', '#', '$' or spaces")
 
 
 def _stop_event() -> threading.Event:
@@ -163,6 +163,8 @@ def _run_bridge(args: argparse.Namespace) -> int:
 
     if not args.level and (args.level_ahead or args.ground_y is not None):
         raise CliError("--level-ahead and --ground-y place the levelled map frame: add --level")
+    if args.bridge_id is not None:   # a chunk of the bridge's token and status keys
+        _check_camera_id(args.bridge_id, "--bridge-id")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
     options = _zenoh_options(args, default_listen=True)
     runtime = Runtime(RuntimeConfig(bundle_dir=args.bundle, device=args.device,
@@ -213,7 +215,8 @@ def _run_camera(args: argparse.Namespace) -> int:
         frames = dataset_frames(args.data, view=args.view, loop=args.loop, capture_dt=args.capture_dt)
     stop = _stop_event()
     sent = publish_frames(_until(frames, stop), camera_id=args.camera_id, zenoh_options=options, rate_hz=args.rate,
-                          max_frames=args.frames, encoding=args.encoding, wait_for_bridge_s=args.wait_for_bridge)
+                          max_frames=args.frames, encoding=args.encoding, wait_for_bridge_s=args.wait_for_bridge,
+                          stop=stop)
     print(f"camera {args.camera_id}: published {sent} frames", file=sys.stderr, flush=True)
     return 0
 

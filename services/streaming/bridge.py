@@ -157,17 +157,24 @@ class Bridge:
 
     # -- lifecycle -------------------------------------------------------------------------------
     def start(self) -> "Bridge":
+        """Open the session, start the threads, declare the subscriber, status queryable and token; if any of it
+        fails, what was started is stopped again before the error is raised (a caller's `with` never began)."""
         self.started_at = self.clock()
         self._session = open_session(self.zenoh_options)
-        self._worker = threading.Thread(target=self._work, name="n3dmap-bridge-worker", daemon=True)
-        self._worker.start()
-        if self.lookahead:
-            self._lookahead = threading.Thread(target=self._look_ahead, name="n3dmap-bridge-lookahead", daemon=True)
-            self._lookahead.start()
-        session = self._session
-        self._declared.append(session.declare_subscriber(keys.rgbd("*"), self._on_sample))
-        self._declared.append(session.declare_queryable(keys.bridge_status(self.bridge_id), self._on_status))
-        self._declared.append(session.liveliness().declare_token(keys.bridge_token(self.bridge_id)))
+        try:
+            self._worker = threading.Thread(target=self._work, name="n3dmap-bridge-worker", daemon=True)
+            self._worker.start()
+            if self.lookahead:
+                self._lookahead = threading.Thread(target=self._look_ahead, name="n3dmap-bridge-lookahead",
+                                                   daemon=True)
+                self._lookahead.start()
+            session = self._session
+            self._declared.append(session.declare_subscriber(keys.rgbd("*"), self._on_sample))
+            self._declared.append(session.declare_queryable(keys.bridge_status(self.bridge_id), self._on_status))
+            self._declared.append(session.liveliness().declare_token(keys.bridge_token(self.bridge_id)))
+        except BaseException:
+            self.stop()
+            raise
         log.info("bridge %s listening on %s (cameras %r)", self.bridge_id, keys.rgbd("*"), self.cameras)
         return self
 

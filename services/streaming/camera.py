@@ -10,6 +10,7 @@ means zenoh never silently drops a frame on the way out (docs/ecosystem.md#zenoh
 from __future__ import annotations
 
 import logging
+import threading
 import time
 import uuid
 from typing import Iterable, Iterator
@@ -49,7 +50,7 @@ def encode_frame(frame: dict, *, camera_id: str, sequence: int, timestamp: float
 
 def publish_frames(frames: Iterable[dict], *, camera_id: str, zenoh_options: ZenohOptions, rate_hz: float,
                    max_frames: int | None, encoding: str = "raw", wait_for_bridge_s: float = 10.0,
-                   on_sent=None) -> int:
+                   on_sent=None, stop: threading.Event | None = None) -> int:
     """Publish frames at `rate_hz` until the source ends or `max_frames` were sent; returns the count.
 
     Each frame's `timestamp` is when it is sent; a source that knows when its frames were captured (a
@@ -57,7 +58,8 @@ def publish_frames(frames: Iterable[dict], *, camera_id: str, zenoh_options: Zen
     offset, so a recording replayed at another rate keeps its own clock for motion.
 
     Before the first frame it waits up to `wait_for_bridge_s` for a bridge's liveliness token, so
-    a camera started together with its bridge does not publish into the void."""
+    a camera started together with its bridge does not publish into the void. `stop` (set by a signal
+    handler) ends it within moments even while it waits out a long period (a slow --rate)."""
     if rate_hz <= 0:
         raise ConfigError(f"--rate must be positive, got {rate_hz}")
     session = open_session(zenoh_options)
@@ -78,7 +80,11 @@ def publish_frames(frames: Iterable[dict], *, camera_id: str, zenoh_options: Zen
                 break
             delay = next_at - time.monotonic()
             if delay > 0:
-                time.sleep(delay)
+                if stop is not None:
+                    if stop.wait(delay):   # time.sleep would sit out the whole period after a SIGTERM
+                        break
+                else:
+                    time.sleep(delay)
             elif delay < -period:
                 # The source stalled (a synthetic episode being rendered): resume at the rate from
                 # now instead of bursting out the frames "missed" meanwhile, as a real camera would.

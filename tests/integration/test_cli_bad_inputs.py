@@ -73,6 +73,7 @@ CASES = [
     _case("camera-rate-tiny", "stream camera --camera-id c --synthetic --rate 1e-300", "--rate"),   # was an OverflowError
     _case("bridge-frame-dt-tiny", "stream bridge --bundle {bundle} --frame-dt 1e-300", "--frame-dt"),
     _case("camera-capture-dt-tiny", "stream camera --camera-id c --synthetic --capture-dt 1e-9", "--capture-dt"),
+    _case("bridge-id-not-a-key-chunk", "stream bridge --bundle {bundle} --bridge-id a?b", "--bridge-id 'a?b'"),
     _case("bridge-min-score-nan", "stream bridge --bundle {bundle} --min-score nan", "--min-score"),  # dropped every box
     _case("bridge-min-score-2", "stream bridge --bundle {bundle} --min-score 2", "--min-score"),
     _case("camera-frames-negative", "stream camera --camera-id c --synthetic --frames -3", "--frames"),

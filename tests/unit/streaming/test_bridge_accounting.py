@@ -344,3 +344,12 @@ def test_idle_cameras_are_forgotten_and_a_flood_of_cameras_is_capped(endpoint):
     finally:
         client.close()
         bridge.stop()
+
+
+def test_a_start_that_fails_part_way_stops_what_it_started(endpoint):
+    bridge = Bridge(processor=JsonProcessor(), zenoh_options=ZenohOptions(listen=(endpoint,)), bridge_id="bad?id")
+    with pytest.raises(zenoh.ZError):       # the status key of this id is no key expression
+        bridge.start()
+    assert bridge._session is None and not bridge._declared
+    assert bridge._worker is not None and not bridge._worker.is_alive()
+    assert bridge._lookahead is None or not bridge._lookahead.is_alive()
