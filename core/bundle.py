@@ -137,7 +137,8 @@ def read_bundle_meta(directory: str | os.PathLike) -> dict:
         raise BundleError(f"corrupt {path}: 'modules' must map a module name to its kind and config, "
                           f"got {type(modules).__name__}")
     for name, entry in modules.items():
-        if not (isinstance(entry, dict) and isinstance(entry.get("kind"), str) and isinstance(entry.get("config"), dict)):
+        if not (isinstance(entry, dict) and isinstance(entry.get("kind"), str)
+                and isinstance(entry.get("config"), dict)):
             raise BundleError(f"corrupt {path}: module {name!r} needs a 'kind' (string) and a 'config' (object)")
     return meta
 

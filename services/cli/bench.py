@@ -20,6 +20,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from services.cli.paths import check_creatable_dir
+
 # Training stages with a stopping rule, each with its --<stage>-steps flag (services.bench.plan.STAGE_NAMES;
 # kept here so that building the parser does not import torch).
 STAGE_NAMES = ("pretrain", "occupancy", "detector", "flow", "egomotion")
@@ -146,7 +148,6 @@ def run_status(args: argparse.Namespace) -> int:
 
 def run_carry_save(args: argparse.Namespace) -> int:
     from services.bench.carry import save_carry
-    from services.cli.paths import check_creatable_dir
 
     check_creatable_dir(args.to, "--to")
     save_carry(args.out, args.to)
@@ -155,7 +156,6 @@ def run_carry_save(args: argparse.Namespace) -> int:
 
 def run_carry_restore(args: argparse.Namespace) -> int:
     from services.bench.carry import restore_carry
-    from services.cli.paths import check_creatable_dir
 
     check_creatable_dir(args.out, "--out")
     restore_carry(args.source, args.out)
@@ -210,8 +210,6 @@ def run(args: argparse.Namespace) -> int:
     # A training stage in this process takes SIGTERM over while it trains (services/training/stop_signal.py).
     signal.signal(signal.SIGTERM, raise_keyboard_interrupt)
     config = config_from_args(args)
-    from services.cli.paths import check_creatable_dir
-
     check_creatable_dir(args.out, "--out")
     parallel = args.parallel_seeds if args.parallel_seeds is not None else min(len(config.seeds), usable_cpus())
     metrics = run_paper_bench(config, args.out, parallel_seeds=parallel, threads=args.threads,

@@ -8,6 +8,7 @@ import argparse
 import json
 
 from services.cli.lineage import lineage_lines
+from services.cli.paths import check_creatable_dir
 
 
 def describe_bundle(path: str) -> dict:
@@ -73,8 +74,6 @@ def _merge(args: argparse.Namespace) -> int:
                              save_bundle)
     from services.cli.errors import CliError
     from services.training.job import git_commit
-
-    from services.cli.paths import check_creatable_dir
 
     paths = [Path(b) for b in args.bundles]
     out = Path(args.out)

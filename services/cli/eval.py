@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Iterator
 
 from services.cli.argtypes import positive_int
+from services.cli.paths import check_creatable_dir
 
 # kind -> module with register(kind_subparsers), in `n3dmap eval --help` order.
 EVAL_KINDS: dict[str, str] = {
@@ -144,8 +145,6 @@ def register(subparsers) -> None:
 def _checking_report_dir(run):
     """`run` after checking that --out can be created: a report is written at the end of the work."""
     def checked(args: argparse.Namespace):
-        from services.cli.paths import check_creatable_dir
-
         check_creatable_dir(args.out, "--out")
         return run(args)
     return checked

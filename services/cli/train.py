@@ -21,6 +21,7 @@ from pathlib import Path
 
 from core.errors import DataError
 from services.cli.argtypes import non_negative_float, positive_float
+from services.cli.paths import check_creatable_dir
 from services.training.config import TrainConfigError
 
 # Task parser modules under services/cli/train_tasks/, in `n3dmap train --help` order.
@@ -135,8 +136,6 @@ def run_train(task_name: str, args: argparse.Namespace, task_options: dict) -> i
 
     if not Path(args.data).is_dir():
         raise DataError(f"--data {args.data}: no such dataset directory")
-    from services.cli.paths import check_creatable_dir
-
     check_creatable_dir(args.run_dir, "--run-dir")
     config = config_from_args(task_name, args, task_options)
     if config.workers == 0 and not config.attach:

@@ -45,8 +45,8 @@ LEVEL_FRAME = "level"  # the boxes' frame with `level=True`: the previous frame'
 @dataclass(frozen=True)
 class AheadEncoding:
     """What `MovingStream.encode_ahead` made of a frame before its step, tagged with the frame and the bundle's
-    load (`MovingStream._bundle_now`'s key) so that a step uses it only for that frame and that load (a reload never mixes stale
-    tensors in): its own-ref FrameEncoding, and the egomotion from `ego_previous` (the frame expected to
+    load (`MovingStream._bundle_now`'s key) so that a step uses it only for that frame and that load (a reload
+    never mixes stale tensors in): its own-ref FrameEncoding, and the egomotion from `ego_previous` (the frame expected to
     be its step's previous frame) to it, when that was known."""
 
     frame: View

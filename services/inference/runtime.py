@@ -93,6 +93,9 @@ def _missing(route: Route, bundle, item: Any | None = None) -> list[str]:
     return [m for m in route.needs(item) if m not in bundle.modules]
 
 
+_LOAD_GENERATIONS = itertools.count(1)   # _Loaded.generation
+
+
 def _load(path: str, device: torch.device, *, egomotion_fine: str = "module") -> _Loaded:
     from core.bundle import load_bundle  # safetensors / weights_only: no code is unpickled
 
@@ -107,9 +110,6 @@ def _load(path: str, device: torch.device, *, egomotion_fine: str = "module") ->
             ego.fine = FineAlignment(kind="splat", factor=2)
     return _Loaded(bundle=bundle, version=bundle_version(bundle), path=str(path), loaded_at=time.time(),
                    generation=next(_LOAD_GENERATIONS))
-
-
-_LOAD_GENERATIONS = itertools.count(1)
 
 
 class Runtime:

@@ -134,7 +134,8 @@ def run(settings: ServeSettings) -> int:
     app = build_app(settings, runtime)
     config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level=settings.log_level,
                             ssl_certfile=settings.tls_cert, ssl_keyfile=settings.tls_key,
-                            timeout_graceful_shutdown=math.ceil(settings.drain_s), lifespan="on")  # 0 is 0: `or None` waited forever
+                            # ceil, not `int(drain_s) or None`: a drain of 0 (or 0.5) meant None, i.e. wait forever
+                            timeout_graceful_shutdown=math.ceil(settings.drain_s), lifespan="on")
     server = _server_class()(config)
     try:
         server.run(sockets=sockets)

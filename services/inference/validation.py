@@ -229,7 +229,8 @@ def pair_interval(views0: Views, views1: Views, *, frame_dt: float, field1: str)
         return _long_enough(c1 - c0, f"{field1}.capture_time")
     t0, t1 = views0.timestamp, views1.timestamp
     if t0 == 0.0 and t1 == 0.0:
-        return max(1, views1.sequence - views0.sequence) * frame_dt   # frame_dt ≥ MIN_PAIR_INTERVAL_S (its flag's type)
+        # frame_dt is at least MIN_PAIR_INTERVAL_S (its flag's type), so this needs no _long_enough
+        return max(1, views1.sequence - views0.sequence) * frame_dt
     if not t1 > t0:
         raise InvalidInput(f"{field1}.timestamp", f"{t1!r} s is not after the first instant's {t0!r} s: the "
                                                   "frames' clock must advance (or leave both timestamps 0)")

@@ -97,10 +97,6 @@ class Accounting:
             for name in COUNTERS:
                 setattr(total, name, getattr(total, name) + getattr(stats, name))
 
-    def __contains__(self, camera: str) -> bool:
-        with self._lock:
-            return camera in self._cameras
-
     def snapshot(self) -> dict[str, dict]:
         with self._lock:
             return {cam: stats.to_json() for cam, stats in self._cameras.items()}

@@ -138,7 +138,6 @@ class Bridge:
         self.accounting = Accounting()
         self.idle_evict_s, self.max_cameras = idle_evict_s, max_cameras
         self._last_seen: dict[str, float] = {}   # per tracked camera: when its latest sample arrived (under _cond)
-        self._busy: str | None = None            # the camera whose frame the worker is handling (under _cond)
         self._slots: dict[str, Parked] = {}
         self._states: dict[str, CameraState] = {}
         self._cond = threading.Condition()
@@ -264,18 +263,15 @@ class Bridge:
             camera = min(ready, key=lambda c: self._slots[c].received_at)
             parked = self._slots.pop(camera)
             self._taken[camera] = parked
-            self._busy = camera
         return camera, parked
 
     def _evict_idle(self) -> None:
-        """Forget the cameras idle for idle_evict_s (under _cond, on the worker thread, which alone touches
-        _states): neither a frame parked nor one being handled, nor claimed by the look-ahead."""
+        """Forget the cameras idle for idle_evict_s and with no frame parked (under _cond). It runs on the worker
+        thread between two frames, so no frame is being handled then, and the worker — the one thread that touches
+        _states and _publishers — only ever takes frames the look-ahead has finished."""
         now = self.clock()
         for camera, seen in list(self._last_seen.items()):
-            if now - seen < self.idle_evict_s or camera in self._slots or camera == self._busy:
-                continue
-            taken = self._taken.get(camera)
-            if taken is not None and taken.claimed and not taken.done.is_set():
+            if now - seen < self.idle_evict_s or camera in self._slots:
                 continue
             del self._last_seen[camera]
             self._states.pop(camera, None)
@@ -363,8 +359,6 @@ class Bridge:
                 # Leaves `pending` only now that the frame sits in its final bucket, so the
                 # identity received = processed + dropped + malformed + pending holds at every instant.
                 self.accounting.update(camera, pending=-1)
-                with self._cond:
-                    self._busy = None
             self._prepare_while_idle(camera)
 
     def _prepare_while_idle(self, camera: str) -> None:

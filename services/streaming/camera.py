@@ -62,6 +62,7 @@ def publish_frames(frames: Iterable[dict], *, camera_id: str, zenoh_options: Zen
     handler) ends it within moments even while it waits out a long period (a slow --rate)."""
     if rate_hz <= 0:
         raise ConfigError(f"--rate must be positive, got {rate_hz}")
+    stop = stop or threading.Event()
     session = open_session(zenoh_options)
     publisher_id = uuid.uuid4().hex[:12]
     attachment = f"pub={publisher_id}".encode()
@@ -80,11 +81,8 @@ def publish_frames(frames: Iterable[dict], *, camera_id: str, zenoh_options: Zen
                 break
             delay = next_at - time.monotonic()
             if delay > 0:
-                if stop is not None:
-                    if stop.wait(delay):   # time.sleep would sit out the whole period after a SIGTERM
-                        break
-                else:
-                    time.sleep(delay)
+                if stop.wait(delay):   # time.sleep would sit out the whole period after a SIGTERM
+                    break
             elif delay < -period:
                 # The source stalled (a synthetic episode being rendered): resume at the rate from
                 # now instead of bursting out the frames "missed" meanwhile, as a real camera would.

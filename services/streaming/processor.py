@@ -41,8 +41,8 @@ class RuntimeProcessor(MovingStream):
                  level_ahead: float = 0.0, ground_y: float | None = None) -> None:
         """As MovingStream; refuses a bundle that cannot find moving objects."""
         if "moving_objects" not in runtime.routes:
-            raise ValueError(f"--bundle {runtime.config.bundle_dir} (version {runtime.version}) cannot serve the stream bridge: it lacks the modules for "
-                             f"moving_objects (loaded modules: {', '.join(runtime.modules)}); "
+            raise ValueError(f"--bundle {runtime.config.bundle_dir} (version {runtime.version}) cannot serve the "
+                             f"stream bridge: it lacks the modules for moving_objects (loaded modules: {', '.join(runtime.modules)}); "
                              "train the flow module into the bundle first")
         super().__init__(runtime, min_score=min_score, frame_dt=frame_dt, objects=objects, reuse=reuse,
                          level=level, level_ahead=level_ahead, ground_y=ground_y)

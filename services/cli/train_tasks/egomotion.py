@@ -15,8 +15,10 @@ def register(tasks) -> None:
                     "an MLP per scale, inverse-compositional) on consecutive frames; random yaw-heavy "
                     "perturbations of the second frame's map frame augment the pairs.")
     parser.add_argument("--no-augment", action="store_true", help="train on the recorded motion only")
-    parser.add_argument("--augment-deg", type=non_negative_float, default=6.0, help="largest yaw perturbation (degrees)")
-    parser.add_argument("--augment-m", type=non_negative_float, default=1.0, help="largest x/z perturbation (metres)")
+    parser.add_argument("--augment-deg", type=non_negative_float, default=6.0,
+                        help="largest yaw perturbation (degrees)")
+    parser.add_argument("--augment-m", type=non_negative_float, default=1.0,
+                        help="largest x/z perturbation (metres)")
     parser.add_argument("--occupancy", choices=("binary", "splat"), default=None,
                         help="occupancy channel of the input volumes (default: the task's)")
     parser.add_argument("--refine", action=argparse.BooleanOptionalAction, default=None,

@@ -317,8 +317,8 @@ def test_a_bundle_without_egomotion_needs_the_frames_poses(bundle_dir, frames):
         stream.step("c", state, unposed[1])
 
 
-def test_cache_is_keyed_by_sequence(bundle_dir, frames):
-    """A stale cache (another frame's encoding) is never used: the step recomputes instead."""
+def _frame_0_prepared(bundle_dir, frames):
+    """(runtime, processor, views, state) after frame 0 was processed and its encoding prepared in idle time."""
     runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
     processor = RuntimeProcessor(runtime, min_score=-1.0)
     views = decoded(frames)
@@ -326,6 +326,12 @@ def test_cache_is_keyed_by_sequence(bundle_dir, frames):
     processor.process("c", state, views[0])
     state.advance(views[0])
     processor.prepare("c", state)
+    return runtime, processor, views, state
+
+
+def test_cache_is_keyed_by_sequence(bundle_dir, frames):
+    """A stale cache (another frame's encoding) is never used: the step recomputes instead."""
+    _, processor, views, state = _frame_0_prepared(bundle_dir, frames)
     stale = state.extra["encoding"]
     # frame 2 follows frame 1, but the cache still holds frame 0's encoding under sequence 0
     state.advance(views[1])
@@ -339,13 +345,7 @@ def test_cache_is_keyed_by_the_bundle_load_not_only_its_version(bundle_dir, fram
     with the old load is not reused by the first step after the reload."""
     from services.inference.runtime import _load
 
-    runtime = Runtime(RuntimeConfig(bundle_dir=str(bundle_dir), device="cpu"))
-    processor = RuntimeProcessor(runtime, min_score=-1.0)
-    views = decoded(frames)
-    state = CameraState()
-    processor.process("c", state, views[0])
-    state.advance(views[0])
-    processor.prepare("c", state)             # frame 0 encoded with the first load
+    runtime, processor, views, state = _frame_0_prepared(bundle_dir, frames)   # frame 0 encoded with the first load
     version = runtime.version
     runtime._loaded = _load(str(bundle_dir), runtime.device, egomotion_fine=runtime.config.egomotion_fine)
     assert runtime.version == version         # what a reload of the same directory does
