@@ -6,7 +6,8 @@ parameters), GET /v1/models, POST /v1/admin/reload, GET /healthz, /readyz, /metr
 Map and flow answer `.npz` instead of JSON when the request says `Accept: application/x-npz`.
 
 Errors are JSON `{error, detail, field}`: 422 invalid input (naming the field), 404 module absent
-from the bundle, 413 body too large, 429 overloaded, 504 timeout, 503 not ready, 401 bad token.
+from the bundle, 413 body too large, 429 overloaded, 504 timeout, 503 not ready, 401 bad token, 500 a fault of the server
+(`internal`; the traceback goes to the server's log).
 The optional bearer token guards every /v1 route; probes and /metrics stay open.
 """
 
@@ -108,6 +109,13 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
     @app.exception_handler(ServiceError)
     async def _service(request: Request, e: ServiceError):
         return _service_error(e)
+
+    @app.exception_handler(Exception)
+    async def _internal(request: Request, e: Exception):
+        # A fault of the server, not of the request (a model error, memory): the same JSON error shape as every
+        # other status rather than Starlette's plain-text 500. Starlette raises the exception on after this
+        # response, so uvicorn logs its traceback once.
+        return error_response(500, "internal", f"{type(e).__name__}: {e}")
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, e: RequestValidationError):
@@ -312,6 +320,7 @@ _ERRORS = {
     415: {"model": schemas.ErrorJSON, "description": "unsupported Content-Type"},
     422: {"model": schemas.ErrorJSON, "description": "invalid input; `field` names it"},
     429: {"model": schemas.ErrorJSON, "description": "overloaded: the queue is full"},
+    500: {"model": schemas.ErrorJSON, "description": "a fault of the server (error `internal`)"},
     503: {"model": schemas.ErrorJSON, "description": "starting or shutting down"},
     504: {"model": schemas.ErrorJSON, "description": "the request exceeded its deadline"},
 }
