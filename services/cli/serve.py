@@ -10,6 +10,10 @@ from services.cli.argtypes import (DEFAULT_FRAME_DT, FRAME_DT_HELP, frame_interv
 from services.cli.egomotion_options import add_egomotion_arguments
 from services.cli.moving_options import add_moving_object_arguments, moving_objects_config
 
+# services.inference.codecs.MAX_REQUEST_PIXELS, written here so that `n3dmap --help` does not import the service
+# (tests/unit/inference/test_pixel_budget.py checks they agree).
+MAX_REQUEST_PIXELS = 64 * 2**20
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -34,6 +38,11 @@ def register(subparsers) -> None:
     add_moving_object_arguments(p)  # the moving-objects route and both gRPC calls
     add_egomotion_arguments(p)
     p.add_argument("--max-body-mb", type=positive_float, default=64.0, help="largest request body (default 64 MB)")
+    p.add_argument("--max-request-pixels", type=positive_int, default=MAX_REQUEST_PIXELS, metavar="N",
+                   help="most pixels one request may decode over all its images, rgb and depth each counted, "
+                        f"on both transports (default {MAX_REQUEST_PIXELS} = 64 Mi: one instant of 16 full-HD "
+                        "views, or a pair of 16-view instants at 1280×800); refused with 422 / INVALID_ARGUMENT "
+                        "before it is decoded")
     p.add_argument("--drain", type=non_negative_float, default=10.0, help="seconds to drain in-flight requests on shutdown")
     p.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
     p.set_defaults(func=run)
@@ -55,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     runtime = RuntimeConfig(bundle_dir=args.bundle, device=args.device, num_threads=args.threads,
                             max_batch=args.max_batch, max_wait_ms=args.max_wait_ms, max_queue=args.queue,
                             timeout_s=args.timeout, frame_dt=args.frame_dt, moving_objects=objects,
-                            egomotion_fine=args.egomotion_fine)
+                            egomotion_fine=args.egomotion_fine, max_request_pixels=args.max_request_pixels)
     return serve(ServeSettings(runtime=runtime, host=args.host, http_port=args.http_port,
                                grpc_port=args.grpc_port, token=args.token or None, tls_cert=args.tls_cert,
                                tls_key=args.tls_key, max_body_bytes=int(args.max_body_mb * 2**20),

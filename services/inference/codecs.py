@@ -24,6 +24,30 @@ from services.inference.errors import InvalidInput
 WIRE_DTYPES = ("uint8", "uint16", "int32", "int64", "float32", "float64", "bool")
 MAX_ARRAY_BYTES = 256 * 2**20
 MAX_IMAGE_PIXELS = 16 * 2**20
+# The pixels one request may decode over all its images, rgb and depth each counted (a pair of 16-view instants
+# at 1024×1024 is 2 × 16 × 2 × 2**20). The per-image cap alone let a request of 64 compressed PNGs within the
+# 64 MiB body cap (a flat 4096×4096 image compresses to kilobytes) decode to ~1 G pixels, GBs before the model.
+MAX_REQUEST_PIXELS = 64 * 2**20
+
+
+class PixelBudget:
+    """What is left of one request's MAX_REQUEST_PIXELS; each image is charged from its header or declared shape,
+    before it is decoded, so a request over budget is refused before the memory is spent."""
+
+    def __init__(self, limit: int = MAX_REQUEST_PIXELS):
+        self.limit, self.left = limit, limit
+
+    def take(self, pixels: int, field: str) -> None:
+        if pixels > self.left:
+            raise InvalidInput(field, f"an image of {pixels} pixels takes the request past its budget of "
+                                      f"{self.limit} pixels over all its images ({self.limit - self.left} used)")
+        self.left -= pixels
+
+
+def image_pixels(shape) -> int:
+    """Pixels of an image array of `shape` (H×W or H×W×C; any other shape: its element count, refused later)."""
+    shape = tuple(int(s) for s in shape)
+    return shape[0] * shape[1] if len(shape) in (2, 3) else math.prod(shape)
 
 
 def array_from_bytes(data: bytes, dtype: str, shape, field: str) -> np.ndarray:
@@ -73,11 +97,13 @@ def b64encode(data: bytes) -> str:
     return base64.b64encode(data).decode("ascii")
 
 
-def _open_png(data: bytes, field: str) -> PILImage.Image:
+def _open_png(data: bytes, field: str, budget: PixelBudget | None) -> PILImage.Image:
     try:
-        img = PILImage.open(io.BytesIO(data), formats=["PNG"])
+        img = PILImage.open(io.BytesIO(data), formats=["PNG"])   # reads the header only
         if img.width * img.height > MAX_IMAGE_PIXELS:
             raise InvalidInput(field, f"image of {img.width}×{img.height} pixels exceeds the cap")
+        if budget is not None:
+            budget.take(img.width * img.height, field)
         img.load()
         return img
     except InvalidInput:
@@ -86,17 +112,17 @@ def _open_png(data: bytes, field: str) -> PILImage.Image:
         raise InvalidInput(field, f"undecodable PNG ({type(e).__name__}: {e})") from None
 
 
-def decode_png_rgb(data: bytes, field: str) -> np.ndarray:
-    """PNG (RGB, RGBA, grey or palette) -> H×W×3 uint8."""
-    img = _open_png(data, field)
+def decode_png_rgb(data: bytes, field: str, budget: PixelBudget | None = None) -> np.ndarray:
+    """PNG (RGB, RGBA, grey or palette) -> H×W×3 uint8, charged to `budget` before it is decoded."""
+    img = _open_png(data, field, budget)
     if img.mode not in ("RGB", "RGBA", "L", "P", "LA"):
         raise InvalidInput(field, f"RGB PNG must be 8-bit colour or grey, got mode {img.mode}")
     return np.asarray(img.convert("RGB"), dtype=np.uint8)
 
 
-def decode_png_depth(data: bytes, field: str) -> np.ndarray:
-    """16-bit grey PNG of millimetres -> H×W float32 metres (0 stays 0 = missing)."""
-    img = _open_png(data, field)
+def decode_png_depth(data: bytes, field: str, budget: PixelBudget | None = None) -> np.ndarray:
+    """16-bit grey PNG of millimetres -> H×W float32 metres (0 stays 0 = missing), charged to `budget` first."""
+    img = _open_png(data, field, budget)
     if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
         raise InvalidInput(field, f"depth PNG must be 16-bit greyscale millimetres, got mode {img.mode}")
     mm = np.asarray(img).astype(np.float32)

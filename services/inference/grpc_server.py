@@ -98,17 +98,24 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
 
     async def Map(self, request: inference_pb2.MapRequest, context):
         async def run():
-            item = MapInput(views=await wire.off_loop(wire.views_from_proto, request.views, "views"),
+            item = MapInput(views=await wire.off_loop(wire.views_from_proto, request.views, "views", self._budget()),
                             features=request.features)
             answer = await self.runtime.infer("map", item, timeout_s=_deadline(context))
             arrays = {k: codecs.numpy_to_tensor(v) for k, v in wire.map_arrays(answer.result).items()}
             return inference_pb2.MapResponse(info=wire.info_proto(answer), grid=self._grid(), **arrays)
         return await self._call("Map", context, run)
 
+    def _budget(self) -> codecs.PixelBudget:
+        """A fresh request's pixel budget (`serve --max-request-pixels`)."""
+        return codecs.PixelBudget(self.runtime.config.max_request_pixels)
+
     async def _views(self, request) -> tuple:
         """The pair's two instants, decoded off the event loop (wire.off_loop says why)."""
-        return await wire.off_loop(lambda: (wire.views_from_proto(request.views0, "views0"),
-                                       wire.views_from_proto(request.views1, "views1")))
+        def decode():
+            budget = self._budget()   # one request: both instants draw on it
+            return (wire.views_from_proto(request.views0, "views0", budget),
+                    wire.views_from_proto(request.views1, "views1", budget))
+        return await wire.off_loop(decode)
 
     async def Egomotion(self, request: inference_pb2.PairRequest, context):
         async def run():
@@ -129,7 +136,7 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
 
     async def Detect(self, request: inference_pb2.DetectRequest, context):
         async def run():
-            views = await wire.off_loop(wire.views_from_proto, request.views, "views")
+            views = await wire.off_loop(wire.views_from_proto, request.views, "views", self._budget())
             item = DetectInput(views=views, min_score=check_min_score(request.min_score))
             answer = await self.runtime.infer("detect", item, timeout_s=_deadline(context))
             return inference_pb2.DetectionsResponse(info=wire.info_proto(answer), detections=wire.detections_proto(
@@ -170,7 +177,7 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             states: dict[str, CameraState] = {}
             async for frame in request_iterator:
                 received = time.perf_counter()
-                view = await wire.off_loop(wire.view_from_proto, frame, "frame")
+                view = await wire.off_loop(wire.view_from_proto, frame, "frame", self._budget())
                 if frame.camera_id not in states and len(states) >= MAX_STREAM_CAMERAS:
                     # each camera keeps its previous frame and encoding for the call's life (several MB)
                     raise Overloaded(f"frame.camera_id: one call streams at most {MAX_STREAM_CAMERAS} cameras; "

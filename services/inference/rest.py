@@ -156,6 +156,10 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
 
     grid = lambda: runtime.bundle.preset.grid.to_dict()  # noqa: E731 (current bundle's grid)
 
+    def budget() -> codecs.PixelBudget:
+        """A fresh request's pixel budget (`serve --max-request-pixels`)."""
+        return codecs.PixelBudget(runtime.config.max_request_pixels)
+
     # ------------------------------------------------------------------------------ routes
     @app.post("/v1/map", dependencies=guarded, response_model=schemas.MapResponseJSON, tags=["inference"],
               summary="Frames of one instant -> occupancy, heightmap (and features) in ref",
@@ -166,10 +170,10 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
                         features: Annotated[bool, Query(description="binary bodies: return features")] = False):
         kind, body = await parse(request, schemas.MapRequestJSON)
         if kind == "json":
-            item = MapInput(views=await wire.off_loop(wire.views_from_json, body.views, "views"),
+            item = MapInput(views=await wire.off_loop(wire.views_from_json, body.views, "views", budget()),
                             features=body.features)
         else:
-            item = MapInput(views=await wire.off_loop(wire.views_from_npz, body), features=features)
+            item = MapInput(views=await wire.off_loop(wire.views_from_npz, body, "", budget()), features=features)
         answer = await runtime.infer("map", item)
         if wants_npz(request):
             return npz_response(answer, wire.map_arrays(answer.result), {"grid": grid()})
@@ -181,9 +185,11 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
         kind, body = await parse(request, model)
 
         def decode():
+            pixels = budget()   # one request: both instants draw on it
             if kind == "json":
-                return wire.views_from_json(body.views0, "views0"), wire.views_from_json(body.views1, "views1")
-            return wire.views_from_npz(body, "0"), wire.views_from_npz(body, "1")
+                return (wire.views_from_json(body.views0, "views0", pixels),
+                        wire.views_from_json(body.views1, "views1", pixels))
+            return wire.views_from_npz(body, "0", pixels), wire.views_from_npz(body, "1", pixels)
         return body if kind == "json" else None, await wire.off_loop(decode)
 
     @app.post("/v1/egomotion", dependencies=guarded, response_model=schemas.EgomotionResponseJSON, tags=["inference"],
@@ -223,8 +229,8 @@ def create_app(runtime: Runtime, *, token: str | None = None, max_body_bytes: in
     async def detect_route(request: Request,
                            min_score: Annotated[float, Query(ge=0, le=1, description="binary bodies")] = 0.0):
         kind, body = await parse(request, schemas.DetectRequestJSON)
-        views = await (wire.off_loop(wire.views_from_json, body.views, "views") if kind == "json"
-                       else wire.off_loop(wire.views_from_npz, body))
+        views = await (wire.off_loop(wire.views_from_json, body.views, "views", budget()) if kind == "json"
+                       else wire.off_loop(wire.views_from_npz, body, "", budget()))
         score = body.min_score if kind == "json" else check_min_score(min_score)
         answer = await runtime.infer("detect", DetectInput(views=views, min_score=score))
         return detections_json(answer, views)

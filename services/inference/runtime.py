@@ -29,6 +29,7 @@ from core.errors import BundleError
 from core.models.egomotion_fine import FineAlignment
 from core.pipeline.moving_boxes import DEFAULT_DT, MovingObjectsConfig
 from services.inference.batching import BatchConfig, BatchStats, MicroBatcher
+from services.inference.codecs import MAX_REQUEST_PIXELS
 from services.inference.errors import ModuleUnavailable, NotReady, RequestTimeout
 from services.inference.metrics import Metrics
 from services.inference.routes import BOX_FRAME, ROUTES, Route
@@ -55,8 +56,12 @@ class RuntimeConfig:
     # Which last, weightless alignment stage the bundle's egomotion module runs (core/models/egomotion_fine.py;
     # `--egomotion-fine`): "module" its own, "splat" the splat stage on a 2× finer grid (fast), "off" none.
     egomotion_fine: str = "module"
+    # The pixels one request may decode over all its images (`serve --max-request-pixels`; codecs.PixelBudget).
+    max_request_pixels: int = MAX_REQUEST_PIXELS
 
     def __post_init__(self) -> None:
+        if not self.max_request_pixels >= 1:
+            raise BundleError(f"max_request_pixels must be at least 1, got {self.max_request_pixels}")
         if not self.frame_dt > 0:
             raise BundleError(f"frame_dt must be positive seconds, got {self.frame_dt}")
         if isinstance(self.egomotion_fine, bool):  # the option was a boolean until session 25: True = its own stage

@@ -28,13 +28,14 @@ async def off_loop(fn, *args):
 # ---------------------------------------------------------------------------------- JSON in
 
 
-def _json_image(img, field: str, *, depth: bool) -> np.ndarray:
+def _json_image(img, field: str, *, depth: bool, budget: codecs.PixelBudget) -> np.ndarray:
     if (img.png_b64 is None) == (img.array is None):
         raise InvalidInput(field, "give exactly one of png_b64 or array")
     if img.png_b64 is not None:
         data = codecs.b64decode(img.png_b64, f"{field}.png_b64")
-        return (codecs.decode_png_depth if depth else codecs.decode_png_rgb)(data, f"{field}.png_b64")
+        return (codecs.decode_png_depth if depth else codecs.decode_png_rgb)(data, f"{field}.png_b64", budget)
     t = img.array
+    budget.take(codecs.image_pixels(t.shape), f"{field}.array")
     return codecs.array_from_bytes(codecs.b64decode(t.data_b64, f"{field}.array.data_b64"), t.dtype, t.shape,
                                    f"{field}.array")
 
@@ -45,13 +46,15 @@ def _json_matrix(m, field: str) -> np.ndarray:
     return np.asarray(m, dtype=np.float64)
 
 
-def views_from_json(frames, field: str) -> Views:
-    """list[FrameJSON] -> Views."""
+def views_from_json(frames, field: str, budget: codecs.PixelBudget | None = None) -> Views:
+    """list[FrameJSON] -> Views; `budget`: the request's pixel budget (a pair's two instants share one)."""
+    budget = budget or codecs.PixelBudget()
     views = []
     for i, f in enumerate(frames):
         at = f"{field}[{i}]"
         views.append(make_view(
-            rgb=_json_image(f.rgb, f"{at}.rgb", depth=False), depth=_json_image(f.depth, f"{at}.depth", depth=True),
+            rgb=_json_image(f.rgb, f"{at}.rgb", depth=False, budget=budget),
+            depth=_json_image(f.depth, f"{at}.depth", depth=True, budget=budget),
             pix_T_cam=_json_matrix(f.pix_T_cam, f"{at}.pix_T_cam"),
             world_T_cam=None if f.world_T_cam is None else _json_matrix(f.world_T_cam, f"{at}.world_T_cam"),
             field=at, camera_id=f.camera_id, sequence=f.sequence, timestamp=f.timestamp,
@@ -78,8 +81,9 @@ def _npz_scalar(arrays: dict[str, np.ndarray], name: str, kind: str, default):
     return value
 
 
-def views_from_npz(arrays: dict[str, np.ndarray], suffix: str = "") -> Views:
-    """`.npz` body -> Views. Keys: rgb{s} V×H×W×3 uint8, depth{s} V×H×W (float32 m | uint16 mm),
+def views_from_npz(arrays: dict[str, np.ndarray], suffix: str = "",
+                   budget: codecs.PixelBudget | None = None) -> Views:
+    """`.npz` body -> Views, charged to the request's pixel `budget` (a pair's two instants share one). Keys: rgb{s} V×H×W×3 uint8, depth{s} V×H×W (float32 m | uint16 mm),
     pix_T_cam{s} V×4×4, world_T_cam{s} V×4×4 (optional for one view), and the optional scalars
     timestamp{s} and capture_time{s} (seconds) and sequence{s} of the instant; `s` is "" for one instant,
     "0"/"1" for pairs."""
@@ -99,6 +103,9 @@ def views_from_npz(arrays: dict[str, np.ndarray], suffix: str = "") -> Views:
     for name, arr, ndim in ((names["depth"], depth, 3), (names["pix_T_cam"], K, 3), (names["world_T_cam"], pose, 3)):
         if arr is not None and (arr.ndim != ndim or arr.shape[0] != V):
             raise InvalidInput(name, f"must have {ndim} dims with V={V} first, got {list(arr.shape)}")
+    budget = budget or codecs.PixelBudget()
+    for name, arr in ((names["rgb"], rgb), (names["depth"], depth)):
+        budget.take(V * codecs.image_pixels(arr.shape[1:]), name)
     timestamp = _npz_scalar(arrays, f"timestamp{suffix}", "f", 0.0)
     capture_time = _npz_scalar(arrays, f"capture_time{suffix}", "f", 0.0)
     sequence = _npz_scalar(arrays, f"sequence{suffix}", "iu", 0)
@@ -111,21 +118,24 @@ def views_from_npz(arrays: dict[str, np.ndarray], suffix: str = "") -> Views:
 # ---------------------------------------------------------------------------------- protobuf in
 
 
-def _proto_image(img: types_pb2.Image, field: str, *, depth: bool) -> np.ndarray:
+def _proto_image(img: types_pb2.Image, field: str, *, depth: bool, budget: codecs.PixelBudget) -> np.ndarray:
     which = img.WhichOneof("encoding")
     if which is None:
         raise InvalidInput(field, "missing (give png or array)")
     if which == "png":
-        return (codecs.decode_png_depth if depth else codecs.decode_png_rgb)(img.png, f"{field}.png")
+        return (codecs.decode_png_depth if depth else codecs.decode_png_rgb)(img.png, f"{field}.png", budget)
+    budget.take(codecs.image_pixels(img.array.shape), f"{field}.array")
     return codecs.tensor_to_numpy(img.array, f"{field}.array")
 
 
-def view_from_proto(frame: types_pb2.Frame, field: str) -> View:
+def view_from_proto(frame: types_pb2.Frame, field: str, budget: codecs.PixelBudget | None = None) -> View:
+    """One Frame -> View, charged to `budget` (default: a budget of its own, as a stream frame has)."""
     if not frame.HasField("pix_T_cam"):
         raise InvalidInput(f"{field}.pix_T_cam", "missing")
+    budget = budget or codecs.PixelBudget()
     return make_view(
-        rgb=_proto_image(frame.rgb, f"{field}.rgb", depth=False),
-        depth=_proto_image(frame.depth, f"{field}.depth", depth=True),
+        rgb=_proto_image(frame.rgb, f"{field}.rgb", depth=False, budget=budget),
+        depth=_proto_image(frame.depth, f"{field}.depth", depth=True, budget=budget),
         pix_T_cam=codecs.tensor_to_numpy(frame.pix_T_cam, f"{field}.pix_T_cam"),
         world_T_cam=(codecs.tensor_to_numpy(frame.world_T_cam, f"{field}.world_T_cam")
                      if frame.HasField("world_T_cam") else None),
@@ -133,9 +143,11 @@ def view_from_proto(frame: types_pb2.Frame, field: str) -> View:
         scene_start=frame.scene_start, capture_time=frame.capture_time)
 
 
-def views_from_proto(frames, field: str) -> Views:
+def views_from_proto(frames, field: str, budget: codecs.PixelBudget | None = None) -> Views:
+    """Repeated Frame -> Views; `budget`: the request's pixel budget (a pair's two instants share one)."""
     check_view_count(len(frames), field)
-    return stack_views([view_from_proto(f, f"{field}[{i}]") for i, f in enumerate(frames)], field)
+    budget = budget or codecs.PixelBudget()
+    return stack_views([view_from_proto(f, f"{field}[{i}]", budget) for i, f in enumerate(frames)], field)
 
 
 # ---------------------------------------------------------------------------------- out

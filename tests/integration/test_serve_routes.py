@@ -618,17 +618,18 @@ def test_schemathesis_finds_no_server_errors(server, tmp_path):
     assert "passed" in proc.stdout
 
 
-def test_serve_moving_object_options_reach_every_moving_route(tmp_path, server):
+def test_serve_options_reach_every_route(tmp_path, server):
     """`serve --size-prior L W H --min-object-speed M`: the REST route, the unary and the streaming gRPC call
     answer what core.pipeline answers with that post-processing (amodal boxes of that size, that object
-    threshold), not the defaults."""
+    threshold), not the defaults. `--max-request-pixels N` (here exactly one single-view pair's rgb and depth)
+    answers such pairs and refuses a pair of two-view instants on both transports, naming the first image past
+    the budget."""
     import torch
 
     from core.moving.amodal import SizePrior
     from core.pipeline import moving_objects
     from core.pipeline.moving_boxes import MovingObjectsConfig
-    from services.inference.client import GrpcClient, RestClient
-
+    from services.inference.client import GrpcClient, RestClient, ServiceCallError
     from services.inference.runtime import _load
 
     config = MovingObjectsConfig(size_prior=SizePrior.from_size(4.5, 2.0, 1.5), min_object_speed=0.5)
@@ -642,10 +643,19 @@ def test_serve_moving_object_options_reach_every_moving_route(tmp_path, server):
                                             dt=f1.timestamp - f0.timestamp), -1.0)
     assert len(want["boxes"]) > 0  # something to compare, and the options change the answer
     assert want["boxes"].shape != default["boxes"].shape or not np.allclose(want["boxes"], default["boxes"])
+    H, W = f0.depth.shape
+    two_views = sample_frames("tiny", views=2, seed=0), sample_frames("tiny", views=2, seed=1)
     with ServerProcess(server.bundle, "--max-wait-ms", "20", "--frame-dt", str(STEP), "--size-prior", "4.5", "2.0",
-                       "1.5", "--min-object-speed", "0.5", log_path=tmp_path / "server.log") as s:
+                       "1.5", "--min-object-speed", "0.5", "--max-request-pixels", str(4 * H * W),
+                       log_path=tmp_path / "server.log") as s:
         with RestClient(s.url) as rest, GrpcClient(s.target) as grpc_client:
             assert_boxes(rest.moving_objects(f0, f1), want)
             assert_boxes(grpc_client.moving_objects(f0, f1), want)
             streamed = list(grpc_client.stream_moving_objects([f0, f1]))
+            # each transport names the image as its encoding carries it: the .npz body's rgb1, the Frame's array
+            for client, status, field in ((rest, 422, "rgb1"), (grpc_client, "INVALID_ARGUMENT", "views1[0].rgb.array")):
+                with pytest.raises(ServiceCallError) as refused:
+                    client.egomotion(*two_views)
+                assert (refused.value.error, refused.value.status) == ("invalid_input", status)
+                assert refused.value.field == field and "budget" in str(refused.value), refused.value
     assert_boxes(streamed[1], want)
