@@ -1,9 +1,11 @@
 """Both transports in one process: uvicorn serves the FastAPI app, whose lifespan starts the runtime
 and the grpc.aio server on the same event loop.
 
-Signals: SIGTERM/SIGINT shut down gracefully (gRPC health turns NOT_SERVING, uvicorn stops accepting
-and finishes open HTTP requests, gRPC gets `drain_s` to finish its calls, then the runtime drains its
-queue); SIGHUP reloads the bundle from its directory (the old bundle keeps serving if that fails).
+Signals: SIGTERM/SIGINT shut down gracefully within one deadline, `drain_s` from the signal: gRPC health
+turns NOT_SERVING and the gRPC server stops taking calls and finishes its open ones while uvicorn, at the same
+time, stops accepting and finishes open HTTP requests; then the runtime drains its queue with what is left
+(a model call running at the deadline still finishes: it cannot be interrupted). SIGHUP reloads the bundle
+from its directory (the old bundle keeps serving if that fails).
 """
 
 from __future__ import annotations
@@ -15,9 +17,11 @@ import math
 import signal
 import socket
 import sys
+import time
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Awaitable, Callable
 
 from grpc_health.v1 import health_pb2
 
@@ -48,8 +52,38 @@ class ServeSettings:
     log_level: str = "info"
 
 
-def build_app(settings: ServeSettings, runtime: Runtime):
-    """The FastAPI app whose lifespan also runs the gRPC server (and the SIGHUP reload handler)."""
+class ShutdownDeadline:
+    """One deadline for every phase of a graceful shutdown, `drain_s` from its start. The phases ran one after
+    another with `drain_s` each (uvicorn's requests, gRPC's grace, the runtime's queue), so a shutdown could take
+    3 × `--drain`, past the Kubernetes grace period sized for one (deploy/k8s/inference.yaml)."""
+
+    def __init__(self, drain_s: float):
+        self.drain_s = drain_s
+        self.started: float | None = None
+        self._on_start: list[Callable[[], Awaitable[None]]] = []
+
+    def on_start(self, hook: Callable[[], Awaitable[None]]) -> None:
+        """Await `hook()` when the shutdown starts (work that must begin then: draining the other transport)."""
+        self._on_start.append(hook)
+
+    async def start(self) -> None:
+        if self.started is not None:
+            return
+        self.started = time.monotonic()
+        for hook in self._on_start:
+            await hook()
+
+    def left(self) -> float:
+        """Seconds left to the deadline (the whole drain if the shutdown has not started: a failed startup)."""
+        if self.started is None:
+            return self.drain_s
+        return max(0.0, self.drain_s - (time.monotonic() - self.started))
+
+
+def build_app(settings: ServeSettings, runtime: Runtime, shutdown: ShutdownDeadline | None = None):
+    """The FastAPI app whose lifespan also runs the gRPC server (and the SIGHUP reload handler); `shutdown` is the
+    deadline the server's shutdown starts (`run`), so that gRPC drains beside uvicorn rather than after it."""
+    shutdown = shutdown or ShutdownDeadline(settings.drain_s)
     cert = Path(settings.tls_cert).read_bytes() if settings.tls_cert else None
     key = Path(settings.tls_key).read_bytes() if settings.tls_key else None
 
@@ -65,6 +99,17 @@ def build_app(settings: ServeSettings, runtime: Runtime):
             raise OSError(f"gRPC server failed to start on {settings.host}:{settings.grpc_port}: {e}") from e
         app.state.grpc_port = port
         loop = asyncio.get_running_loop()
+        grpc_stopped: list[asyncio.Task] = []
+
+        async def stop_grpc() -> None:
+            """Turn health NOT_SERVING and start gRPC's drain (once), as a task that runs beside uvicorn's."""
+            if grpc_stopped:
+                return
+            for name in ("", "n3dmap.v1.Inference"):
+                await health.set(name, health_pb2.HealthCheckResponse.NOT_SERVING)
+            grpc_stopped.append(asyncio.create_task(server.stop(grace=shutdown.left())))
+
+        shutdown.on_start(stop_grpc)
 
         async def reload_on_signal():
             try:
@@ -81,21 +126,26 @@ def build_app(settings: ServeSettings, runtime: Runtime):
             yield
         finally:
             loop.remove_signal_handler(signal.SIGHUP)
-            for name in ("", "n3dmap.v1.Inference"):
-                await health.set(name, health_pb2.HealthCheckResponse.NOT_SERVING)
-            await server.stop(grace=settings.drain_s)
-            await runtime.stop(drain_s=settings.drain_s)
+            await shutdown.start()   # started already when uvicorn shut down; here when the app is stopped otherwise
+            await stop_grpc()
+            await grpc_stopped[0]
+            await runtime.stop(drain_s=shutdown.left())
             print("n3dmap serve: stopped", file=sys.stderr, flush=True)
 
     return create_app(runtime, token=settings.token, max_body_bytes=settings.max_body_bytes, lifespan=lifespan)
 
 
-def _server_class():
+def _server_class(deadline: ShutdownDeadline):
     import uvicorn
 
     class Server(uvicorn.Server):
         """uvicorn re-raises a captured SIGTERM after its graceful shutdown, so the process would end
-        "killed by SIGTERM"; a completed graceful shutdown exits 0 instead (SIGINT still interrupts)."""
+        "killed by SIGTERM"; a completed graceful shutdown exits 0 instead (SIGINT still interrupts). Its
+        shutdown starts `deadline`, which starts gRPC's drain beside uvicorn's."""
+
+        async def shutdown(self, sockets=None):
+            await deadline.start()
+            await super().shutdown(sockets)
 
         @contextlib.contextmanager
         def capture_signals(self):
@@ -131,12 +181,13 @@ def run(settings: ServeSettings) -> int:
             raise ServeStartError(f"--http-port 0: no free port could be bound on {settings.host}") from None
         settings, sockets = replace(settings, http_port=sock.getsockname()[1]), [sock]
     runtime = Runtime(settings.runtime)
-    app = build_app(settings, runtime)
+    shutdown = ShutdownDeadline(settings.drain_s)
+    app = build_app(settings, runtime, shutdown)
     config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level=settings.log_level,
                             ssl_certfile=settings.tls_cert, ssl_keyfile=settings.tls_key,
                             # ceil, not `int(drain_s) or None`: a drain of 0 (or 0.5) meant None, i.e. wait forever
                             timeout_graceful_shutdown=math.ceil(settings.drain_s), lifespan="on")
-    server = _server_class()(config)
+    server = _server_class(shutdown)(config)
     try:
         server.run(sockets=sockets)
     except SystemExit as e:  # uvicorn exits 3 when startup fails (a port taken since the check above)
