@@ -121,7 +121,7 @@ class Bridge:
     `n3dmap/<camera>/moving_objects` and `n3dmap/<camera>/egomotion`."""
 
     def __init__(self, *, processor: FrameProcessor, zenoh_options: ZenohOptions, cameras: str = "*",
-                 bridge_id: str | None = None, clock: Callable[[], float] = time.time,
+                 bridge_id: str | None = None, clock: Callable[[], float] = time.monotonic,
                  lookahead: bool = True, idle_evict_s: float = IDLE_EVICT_S, max_cameras: int = MAX_CAMERAS) -> None:
         """lookahead: run the processor's `encode_ahead` on a second thread (see the module doc); ignored
         for a processor without it. idle_evict_s: a camera that sent nothing for this long is forgotten (its
@@ -129,7 +129,9 @@ class Bridge:
         "_retired" entry); when it comes back its first frame pairs with nothing, as a scene start.
         max_cameras: cameras tracked at once; a frame of one more is dropped and counted under
         "_too_many_cameras" (camera ids that change — hostname-pid, a flood of keys — would otherwise grow the
-        bridge's memory without bound)."""
+        bridge's memory without bound). clock: when samples arrive, for idle eviction, fair order and uptime —
+        monotonic, so that a wall-clock step (NTP, a suspended host) cannot evict live cameras; latency compares
+        frames' wall-clock timestamps with time.time()."""
         self.processor = processor
         self.zenoh_options = zenoh_options
         self.cameras = cameras
@@ -425,7 +427,7 @@ class Bridge:
         self._publish(keys.egomotion(camera), outputs.egomotion)
         self.accounting.update(camera, processed=1, scene_starts=int(bool(getattr(frame, "scene_start", False))))
         self.accounting.set_last_sequence(camera, seq)
-        self.accounting.add_latency(camera, 1000.0 * (self.clock() - float(frame.timestamp)))
+        self.accounting.add_latency(camera, 1000.0 * (time.time() - float(frame.timestamp)))
 
     def _publish(self, key: str, payload: bytes | None) -> None:
         if payload is None or self._session is None:

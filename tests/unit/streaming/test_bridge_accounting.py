@@ -346,6 +346,11 @@ def test_idle_cameras_are_forgotten_and_a_flood_of_cameras_is_capped(endpoint):
         bridge.stop()
 
 
+def test_idle_eviction_runs_on_a_monotonic_clock_by_default(endpoint):
+    # a wall-clock step (NTP, a resumed host) past idle_evict_s would otherwise evict every live camera
+    assert Bridge(processor=JsonProcessor(), zenoh_options=ZenohOptions(listen=(endpoint,))).clock is time.monotonic
+
+
 def test_a_start_that_fails_part_way_stops_what_it_started(endpoint):
     bridge = Bridge(processor=JsonProcessor(), zenoh_options=ZenohOptions(listen=(endpoint,)), bridge_id="bad?id")
     with pytest.raises(zenoh.ZError):       # the status key of this id is no key expression
