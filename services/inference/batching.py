@@ -147,43 +147,55 @@ class MicroBatcher:
             batch = self._take(self._queue[0].key) if self._queue else []
             if not batch:
                 continue
-            started = time.perf_counter()
-            waits = [started - p.arrived for p in batch]
+            waits = [time.perf_counter() - p.arrived for p in batch]
             self._running = len(batch)
             try:
-                outcomes = await self._run(loop, batch)
+                outcomes = await self._run(loop, batch, waits)
             finally:
                 self._running = 0
-            model_s = time.perf_counter() - started
-            if self._observe is not None:
-                self._observe(batch[0].key, len(batch), waits, model_s)
-            for p, (result, error), w in zip(batch, outcomes, waits):
+            for p, (result, error, stats) in zip(batch, outcomes):
                 if p.future.done():
                     continue
                 if error is not None:
                     p.future.set_exception(error)
                 else:
-                    p.future.set_result((result, BatchStats(queue_s=w, model_s=model_s, batch_size=len(batch))))
+                    p.future.set_result((result, stats))
 
-    async def _run(self, loop, batch: list[_Pending]) -> list[tuple[Any, BaseException | None]]:
-        """(result, error) per request of `batch`. A failed batch of several is run again one request at a time:
-        an error one request's content causes (a degenerate scene, a shape the model refuses) must reach that
-        request alone — delivered to the whole batch, it answered 4xx to callers whose input was valid."""
+    async def _run(self, loop, batch: list[_Pending], waits: list[float]
+                   ) -> list[tuple[Any, BaseException | None, BatchStats | None]]:
+        """(result, error, stats) per request of `batch`. A failed batch of several is run again one request at a
+        time: an error one request's content causes (a degenerate scene, a shape the model refuses) must reach that
+        request alone — delivered to the whole batch, it answered 4xx to callers whose input was valid. Each model
+        call is observed as what it was (the failed batch, then each rerun as a batch of one; each request's queue wait
+        once), and a rerun request's stats are its own call's."""
         try:
-            return list(zip(await self._call(loop, batch), [None] * len(batch)))
+            results, model_s = await self._timed_call(loop, batch, waits)
+            return [(r, None, BatchStats(queue_s=w, model_s=model_s, batch_size=len(batch)))
+                    for r, w in zip(results, waits)]
         except Exception as e:
             if len(batch) == 1:
-                return [(None, e)]
+                return [(None, e, None)]
         outcomes = []
-        for p in batch:
+        for p, w in zip(batch, waits):
             if p.future.done():   # its caller timed out or went away meanwhile: no model time for it
-                outcomes.append((None, None))
+                outcomes.append((None, None, None))
                 continue
             try:
-                outcomes.append(((await self._call(loop, [p]))[0], None))
+                (result,), model_s = await self._timed_call(loop, [p], [])   # its queue wait is observed once
+                outcomes.append((result, None, BatchStats(queue_s=w, model_s=model_s, batch_size=1)))
             except Exception as e:
-                outcomes.append((None, e))
+                outcomes.append((None, e, None))
         return outcomes
+
+    async def _timed_call(self, loop, batch: list[_Pending], waits: list[float]) -> tuple[list, float]:
+        """(results, model seconds) of one model call, observed whether it succeeds or fails (with `waits`, the queue
+        waits that call observes)."""
+        started = time.perf_counter()
+        try:
+            return await self._call(loop, batch), time.perf_counter() - started
+        finally:
+            if self._observe is not None:
+                self._observe(batch[0].key, len(batch), waits, time.perf_counter() - started)
 
     async def _call(self, loop, batch: list[_Pending]) -> list:
         results = await loop.run_in_executor(self._executor, self._run_batch, batch[0].key, [p.item for p in batch])

@@ -135,9 +135,12 @@ def test_one_bad_request_in_a_batch_fails_alone():
         time.sleep(0.02)
         return [x * 10 for x in items]
 
+    observed = []
+
     async def main():
         with ThreadPoolExecutor(1) as ex:
-            b = MicroBatcher(picky, ex, config=BatchConfig(max_batch=4, max_wait_s=0.05, max_queue=8))
+            b = MicroBatcher(picky, ex, config=BatchConfig(max_batch=4, max_wait_s=0.05, max_queue=8),
+                             observe=lambda key, size, waits, model_s: observed.append((size, len(waits), model_s)))
             b.start()
             out = await asyncio.gather(*(b.submit("k", x, timeout_s=5) for x in (1, -2, 3)), return_exceptions=True)
             await b.stop()
@@ -146,3 +149,8 @@ def test_one_bad_request_in_a_batch_fails_alone():
     out = _run(main())
     assert [o[0] for o in (out[0], out[2])] == [10, 30] and isinstance(out[1], ValueError)
     assert calls[0] == [1, -2, 3] and sorted(map(tuple, calls[1:])) == [(-2,), (1,), (3,)]
+    # each model call observed as what it was: the failed batch of 3 (with the 3 queue waits), then 3 batches of 1
+    assert [(size, waits) for size, waits, _ in observed] == [(3, 3), (1, 0), (1, 0), (1, 0)]
+    # a rerun request's stats are its own call's: a batch of one, that call's model time (picky sleeps 20 ms)
+    for result, stats in (out[0], out[2]):
+        assert stats.batch_size == 1 and 0.015 < stats.model_s < 5
