@@ -122,7 +122,8 @@ def _run_paper_bench(config: BenchConfig, out: Path, *, parallel_seeds: int, thr
 
     wall = time.monotonic() - started
     metrics = write_bench_report(out, config=config, results=results, stage_seconds=dict(stages.seconds),
-                                 wall_time_s=wall, ran=[*ran_by_workers, *stages.ran], stopping=_stopping(out, config))
+                                 wall_time_s=wall, ran=[*ran_by_workers, *stages.ran], stopping=_stopping(out, config),
+                                 stage_code=dict(stages.code))
     log(f"[bench] report: {out / 'report.md'} ({wall:.1f} s this run; "
         f"{sum(v for v in stages.seconds.values() if v == v):.1f} s over all stages)")
     return metrics

@@ -23,7 +23,7 @@ from services.bench.judge import FLOORS, MIN_SEEDS
 from services.bench.plan import OCCUPANCY_ROWS, PRETRAINED_ARMS, BenchConfig
 from services.reports import Report
 
-METRIC_KEYS = ("config", "seeds", "wall_time_s", "stage_seconds", "total_stage_seconds", "detection",
+METRIC_KEYS = ("config", "seeds", "wall_time_s", "stage_seconds", "stage_code", "total_stage_seconds", "detection",
                "retrieval", "flow", "moving", "occupancy", "egomotion", "claims", "per_seed", "stopping")
 
 
@@ -43,8 +43,11 @@ def build_tables(config: BenchConfig, per_seed: dict) -> dict:
 
 
 def write_bench_report(out: Path, *, config: BenchConfig, results: dict, stage_seconds: dict,
-                       wall_time_s: float, ran: list[str], stopping: dict | None = None) -> dict:
-    """Write the report into `out`; returns the metrics dict written under "metrics"."""
+                       wall_time_s: float, ran: list[str], stopping: dict | None = None,
+                       stage_code: dict[str, list[str]] | None = None) -> dict:
+    """Write the report into `out`; returns the metrics dict written under "metrics". stage_code: stage -> the
+    commits its attempts ran (StageRunner.code; [] where not recorded)."""
+    stage_code = stage_code or {}
     per_seed = results["seeds"]
     tables = build_tables(config, per_seed)
     budgets = _budget_names(config)
@@ -81,11 +84,12 @@ def write_bench_report(out: Path, *, config: BenchConfig, results: dict, stage_s
     _egomotion_section(report, tables["egomotion"])
     _claims_section(report, claims, config)
     _stopping_section(report, config, stopping or {})
-    _stages_section(report, stage_seconds, ran, wall_time_s, total_stages)
+    _stages_section(report, stage_seconds, ran, wall_time_s, total_stages, stage_code)
 
     report.metrics = {
         "config": config.to_dict(), "seeds": list(config.seeds), "wall_time_s": wall_time_s,
-        "stage_seconds": stage_seconds, "total_stage_seconds": total_stages, **tables, "claims": claims,
+        "stage_seconds": stage_seconds, "stage_code": stage_code, "total_stage_seconds": total_stages, **tables,
+        "claims": claims,
         "per_seed": per_seed, "stopping": stopping or {},
     }
     report.write(out)
@@ -265,9 +269,12 @@ def _stopping_section(report: Report, config: BenchConfig, stopping: dict) -> No
         report.table(["seed", "stage", "steps run", "kept step", "why it stopped"], rows)
 
 
-def _stages_section(report: Report, seconds: dict, ran: list[str], wall: float, total: float) -> None:
+def _stages_section(report: Report, seconds: dict, ran: list[str], wall: float, total: float,
+                    code: dict[str, list[str]]) -> None:
     report.heading("Stages and wall time")
     report.text(f"This invocation: {wall:.1f} s. All stages (including ones finished by an earlier invocation): "
-                f"{total:.1f} s. Stages rerun by this invocation: {len(ran)} of {len(seconds)}.")
-    report.table(["stage", "seconds", "this run"], [[name, s, "yes" if name in ran else "earlier"]
-                                                    for name, s in seconds.items()], digits=1)
+                f"{total:.1f} s. Stages rerun by this invocation: {len(ran)} of {len(seconds)}. "
+                "Code: the git commit(s) each stage's attempts ran at (? where the stage predates the record).")
+    report.table(["stage", "seconds", "this run", "code"],
+                 [[name, s, "yes" if name in ran else "earlier", ", ".join(c[:9] for c in code.get(name, [])) or "?"]
+                  for name, s in seconds.items()], digits=1)

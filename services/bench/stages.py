@@ -4,7 +4,8 @@ A stage is done when its marker file exists (a dataset's manifest.json, a run's 
 evaluation's metrics.json); markers are written last (atomically), so a run cut off mid-stage redoes
 that stage only — and a training stage even resumes from its own last checkpoint. Every stage's wall
 time is kept in WORK/<name>/stage.json (so a later run that skips it still reports what it cost) and
-appended to WORK/stages.jsonl.
+appended to WORK/stages.jsonl, with the git commit of the code each of its attempts ran (`code`: a run resumed
+across commits lists each), so a report names the code behind every number.
 
 Each stage also gets a digest of what determines its output: its own `spec` (task, options, rule, …) and
 the digests of the stages it reads (`after`). A digest is a pure function of the plan, so two plans can be
@@ -43,11 +44,16 @@ class StageRunner:
     digests: dict[str, str] = field(default_factory=dict)      # stage -> digest of its spec and its inputs'
     inputs: dict[str, tuple[str, ...]] = field(default_factory=dict)  # stage -> the stages whose outputs it reads
     specs: dict[str, dict] = field(default_factory=dict)      # stage -> the spec its digest covers (task, options…)
+    code: dict[str, list[str]] = field(default_factory=dict)  # stage -> commits its attempts ran ([]: not recorded)
 
     def __post_init__(self) -> None:
         self.work = Path(self.work)
+        self.commit: str | None = None
         if not self.dry:
             self.work.mkdir(parents=True, exist_ok=True)
+            # read once, when the process starts: the code it runs is what it imported then, whatever HEAD says later
+            from services.training.job import git_commit
+            self.commit = git_commit()
 
     def dir(self, name: str) -> Path:
         return self.work / name
@@ -81,6 +87,7 @@ class StageRunner:
         if done.exists():
             seconds = _read_seconds(info_path)
             self.seconds[name] = seconds
+            self.code[name] = _read_code(info_path)
             self.log(f"[bench] {name}: done earlier ({seconds:.1f} s), skipped")
             self._append(name, seconds, "skipped")
             return stage_dir
@@ -90,19 +97,23 @@ class StageRunner:
         # killed outright writes nothing, so its attempt goes uncounted.)
         partial_path = stage_dir / PARTIAL
         earlier = _read_seconds(partial_path) if partial_path.exists() else 0.0
+        code = _read_code(partial_path) if partial_path.exists() else []
+        if self.commit is not None and self.commit not in code:
+            code = [*code, self.commit]
         self.log(f"[bench] {name}: running" + (f" ({earlier:.1f} s in earlier attempts)" if earlier else ""))
         started = time.monotonic()
         try:
             fn(stage_dir)
         except BaseException:
-            write_json(partial_path, {"stage": name, "seconds": earlier + time.monotonic() - started})
+            write_json(partial_path, {"stage": name, "seconds": earlier + time.monotonic() - started, "code": code})
             raise
         seconds = earlier + time.monotonic() - started
         if not done.exists():
             raise RuntimeError(f"stage {name} finished without writing {done}")
-        write_json(info_path, {"stage": name, "seconds": seconds})
+        write_json(info_path, {"stage": name, "seconds": seconds, "code": code})
         partial_path.unlink(missing_ok=True)
         self.seconds[name] = seconds
+        self.code[name] = code
         self.ran.append(name)
         self.log(f"[bench] {name}: {seconds:.1f} s")
         self._append(name, seconds, "ran")
@@ -111,11 +122,12 @@ class StageRunner:
     def _append(self, name: str, seconds: float, status: str) -> None:
         with open(self.work / JOURNAL, "a") as f:
             f.write(json.dumps({"stage": name, "seconds": round(seconds, 3), "status": status,
-                                "time": time.strftime("%Y-%m-%dT%H:%M:%S")}) + "\n")
+                                "time": time.strftime("%Y-%m-%dT%H:%M:%S"), "code": self.commit}) + "\n")
 
 
-JOURNAL = "stages.jsonl"   # one line per stage and invocation: {stage, seconds, status ("ran"/"skipped"), time}
-PARTIAL = "stage.partial.json"   # in a stage's dir: {stage, seconds} its stopped attempts ran so far
+# one line per stage and invocation: {stage, seconds, status ("ran"/"skipped"), time, code (this process's commit)}
+JOURNAL = "stages.jsonl"
+PARTIAL = "stage.partial.json"   # in a stage's dir: {stage, seconds, code} its stopped attempts ran so far
 
 
 def journal_size(work: Path) -> int:
@@ -148,6 +160,15 @@ def stage_digest(spec: Mapping, inputs: Sequence[str]) -> str:
     """sha256 of a stage's spec and its inputs' digests (canonical JSON: key order does not matter)."""
     text = json.dumps({"spec": spec, "inputs": list(inputs)}, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _read_code(path: Path) -> list[str]:
+    """The commits a stage.json / PARTIAL records ([] when it has none: written before they were recorded)."""
+    try:
+        code = json.loads(path.read_text()).get("code", [])
+    except (OSError, ValueError, AttributeError):
+        return []
+    return [str(c) for c in code] if isinstance(code, list) else []
 
 
 def _read_seconds(path: Path) -> float:

@@ -110,6 +110,11 @@ def test_metrics_json_has_every_key(bench_run):
     assert set(METRIC_KEYS) <= set(metrics)
     assert metrics["seeds"] == [0, 1] and metrics["config"]["quick"] is True
     assert metrics["wall_time_s"] > 0 and metrics["total_stage_seconds"] > 0
+    # every stage names the commit it ran at (the parent's and the seed workers' alike), when this is a checkout
+    from services.training.job import git_commit
+    commit = git_commit()
+    assert set(metrics["stage_code"]) == set(metrics["stage_seconds"])
+    assert all(code == ([commit] if commit else []) for code in metrics["stage_code"].values()), metrics["stage_code"]
     assert [c["id"] for c in metrics["claims"]] == list(CLAIMS)
     for claim in metrics["claims"]:
         assert claim["holds"] is None and claim["verdict"] == "not judged" and claim["ours"] and claim["criterion"]

@@ -54,3 +54,33 @@ def test_a_stage_stopped_part_way_reports_the_time_of_all_its_attempts(tmp_path,
     assert json.loads((work / "a" / "stage.json").read_text())["seconds"] == runner.seconds["a"] == 35.0
     assert not (work / "a" / stages.PARTIAL).exists()
     assert [json.loads(l)["seconds"] for l in (work / JOURNAL).read_text().splitlines()] == [35.0]
+
+
+def test_a_stage_records_the_commit_of_each_of_its_attempts(tmp_path):
+    import pytest
+
+    from services.training.job import git_commit
+
+    work = tmp_path / "work"
+
+    def stopped(stage_dir):
+        raise KeyboardInterrupt
+
+    first = StageRunner(work, log=lambda line: None)
+    assert first.commit == git_commit()   # the checkout's HEAD (None outside a git checkout)
+    first.commit = "a" * 40               # the first attempt ran at one commit …
+    with pytest.raises(KeyboardInterrupt):
+        first.run("s", "done", stopped)
+    second = StageRunner(work, log=lambda line: None)
+    second.commit = "b" * 40              # … and its resume at another
+    second.run("s", "done", _done)
+    assert json.loads((work / "s" / "stage.json").read_text())["code"] == ["a" * 40, "b" * 40] == second.code["s"]
+    assert [json.loads(l)["code"] for l in (work / JOURNAL).read_text().splitlines()] == ["b" * 40]
+    third = StageRunner(work, log=lambda line: None)
+    third.run("s", "done", _done)         # skipped: reads the commits back for the report
+    assert third.code["s"] == ["a" * 40, "b" * 40]
+    (work / "old").mkdir()
+    (work / "old" / "done").write_text("1")
+    (work / "old" / "stage.json").write_text('{"stage": "old", "seconds": 2.0}')   # written before commits were kept
+    third.run("old", "done", _done)
+    assert third.code["old"] == []
