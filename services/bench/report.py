@@ -274,7 +274,8 @@ def _stages_section(report: Report, seconds: dict, ran: list[str], wall: float, 
     report.heading("Stages and wall time")
     report.text(f"This invocation: {wall:.1f} s. All stages (including ones finished by an earlier invocation): "
                 f"{total:.1f} s. Stages rerun by this invocation: {len(ran)} of {len(seconds)}. "
-                "Code: the git commit(s) each stage's attempts ran at (? where the stage predates the record).")
+                "Code: the git commit(s) each stage's attempts ran at (? for attempts that ran before commits were "
+                "recorded).")
     report.table(["stage", "seconds", "this run", "code"],
-                 [[name, s, "yes" if name in ran else "earlier", ", ".join(c[:9] for c in code.get(name, [])) or "?"]
+                 [[name, s, "yes" if name in ran else "earlier", ", ".join(c[:9] for c in code.get(name, ["?"]))]
                   for name, s in seconds.items()], digits=1)

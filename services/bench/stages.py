@@ -44,7 +44,7 @@ class StageRunner:
     digests: dict[str, str] = field(default_factory=dict)      # stage -> digest of its spec and its inputs'
     inputs: dict[str, tuple[str, ...]] = field(default_factory=dict)  # stage -> the stages whose outputs it reads
     specs: dict[str, dict] = field(default_factory=dict)      # stage -> the spec its digest covers (task, options…)
-    code: dict[str, list[str]] = field(default_factory=dict)  # stage -> commits its attempts ran ([]: not recorded)
+    code: dict[str, list[str]] = field(default_factory=dict)  # stage -> commits its attempts ran (UNRECORDED: unknown)
 
     def __post_init__(self) -> None:
         self.work = Path(self.work)
@@ -162,13 +162,16 @@ def stage_digest(spec: Mapping, inputs: Sequence[str]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+UNRECORDED = "?"   # in a stage's `code`: attempts whose commit was not recorded (they ran before it was)
+
+
 def _read_code(path: Path) -> list[str]:
-    """The commits a stage.json / PARTIAL records ([] when it has none: written before they were recorded)."""
+    """The commits a stage.json / PARTIAL records; [UNRECORDED] when it has none (written before they were kept)."""
     try:
-        code = json.loads(path.read_text()).get("code", [])
+        code = json.loads(path.read_text()).get("code")
     except (OSError, ValueError, AttributeError):
-        return []
-    return [str(c) for c in code] if isinstance(code, list) else []
+        return [UNRECORDED]
+    return [str(c) for c in code] if isinstance(code, list) else [UNRECORDED]
 
 
 def _read_seconds(path: Path) -> float:

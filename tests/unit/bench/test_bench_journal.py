@@ -83,4 +83,9 @@ def test_a_stage_records_the_commit_of_each_of_its_attempts(tmp_path):
     (work / "old" / "done").write_text("1")
     (work / "old" / "stage.json").write_text('{"stage": "old", "seconds": 2.0}')   # written before commits were kept
     third.run("old", "done", _done)
-    assert third.code["old"] == []
+    assert third.code["old"] == ["?"]
+    # a stage stopped before commits were recorded and resumed after: its earlier attempts are marked unknown
+    (work / "resumed").mkdir()
+    (work / "resumed" / "stage.partial.json").write_text('{"stage": "resumed", "seconds": 5.0}')
+    third.run("resumed", "done", _done)
+    assert third.code["resumed"] == (["?", third.commit] if third.commit else ["?"])
