@@ -25,9 +25,12 @@ from typing import TextIO
 
 from core.errors import N3dmapError
 
-# Never upload these (relative to the working dir). Ray's gitignore-style patterns.
+# Never upload these. Ray reads them as gitignore patterns, where a bare name matches at any depth: "data" left
+# out core/data/ (the code the job imports first), so the project's own folders of data and runs are anchored to
+# the working dir's root with a leading "/". Ray also honours the project's .gitignore (out/, quickstart/, ...).
 UPLOAD_EXCLUDES = [".git", ".venv", "venv", "**/__pycache__", "*.pyc", ".pytest_cache", "*.tar",
-                   "*.safetensors", "runs", "data", "node_modules", ".mypy_cache", ".ruff_cache"]
+                   "*.safetensors", "/runs", "/data", "/out", "/quickstart", "/carry", "node_modules",
+                   ".mypy_cache", ".ruff_cache"]
 TERMINAL = ("SUCCEEDED", "FAILED", "STOPPED")
 
 
