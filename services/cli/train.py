@@ -170,8 +170,12 @@ def forwarded_argv(task_name: str, args: argparse.Namespace) -> list[str]:
         if value is None or value == action.default:
             continue
         flag = action.option_strings[-1] if action.option_strings[-1].startswith("--") else action.option_strings[0]
-        if isinstance(action, argparse._StoreTrueAction):
-            argv.append(flag)
+        if isinstance(action, argparse.BooleanOptionalAction):   # --x / --no-x: the one the value says, bare
+            argv.append(next(o for o in action.option_strings if o.startswith("--no-") != bool(value)))
+        elif isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
+            # the flag only when set: a handler may have written the other value (detector's freeze_features)
+            if value is (not isinstance(action, argparse._StoreFalseAction)):
+                argv.append(flag)
         elif isinstance(value, (list, tuple)):
             argv += [flag, *map(str, value)]
         else:

@@ -1,5 +1,7 @@
 """CLI errors of `n3dmap train` / `jobs` / `bundle`: one line on stderr, exit 2; argv forwarding."""
 
+import dataclasses
+
 import pytest
 
 from services.cli.main import build_parser, main
@@ -135,3 +137,44 @@ def test_flow_radius_reaches_the_task_options(tmp_path, monkeypatch):
     seen.clear()
     assert main(base + ["--refine-aggregate", "1", "0", "1"]) == 0
     assert seen["refine_aggregate"] == [1, 0, 1]
+
+
+class _Captured(Exception):
+    """Raised by the stand-in for run_training: the config a command would train with, without training."""
+
+
+@pytest.mark.parametrize("task, extra", [
+    ("detector", []), ("detector", ["--finetune"]), ("detector", ["--freeze-features"]),
+    ("egomotion", []), ("egomotion", ["--refine"]), ("egomotion", ["--no-refine", "--no-augment"]),
+    ("pretrain", ["--objective", "regression", "--freeze-features", "--steps", "5"]),
+    ("occupancy", []), ("flow", []),
+])
+def test_a_submitted_job_trains_as_the_command_would_here(tmp_path, monkeypatch, task, extra):
+    """`train TASK ... --address A` submits a command (forwarded_argv, after the task's own handler ran) that, run on
+    the cluster, configures the same training as the command run here: booleans travel as bare flags (`--refine`,
+    `--no-refine`, not `--no-refine True`), and a flag a handler filled in (the detector's freeze_features) does
+    not travel beside the one that set it (`--freeze-features --finetune` is refused)."""
+    import services.training.job as job
+    import services.training.remote as remote
+
+    data, run = tmp_path / "data", tmp_path / "run"
+    data.mkdir()
+    base = ["train", task, "--data", str(data), "--run-dir", str(run), "--preset", "tiny", *extra]
+    configs, submitted = [], []
+
+    def capture(config):
+        configs.append(config)
+        raise _Captured
+
+    monkeypatch.setattr(job, "run_training", capture)
+    monkeypatch.setattr(remote, "submit", lambda address, argv, **kw: submitted.append(argv) or "raysubmit_1")
+    with pytest.raises(_Captured):
+        main(base)                                          # here
+    assert main([*base, "--address", "http://h:8265"]) == 0
+    (argv,) = submitted
+    assert argv[-1] == "--attach" and "True" not in argv and "False" not in argv, argv
+    with pytest.raises(_Captured):
+        main(argv)                                          # what the cluster runs
+    here, there = configs
+    assert there.attach and not here.attach
+    assert dataclasses.replace(there, attach=False) == here, argv
