@@ -31,6 +31,7 @@ AVERAGE_FILE = "average.safetensors"
 OPTIMIZER_FILE = "optimizer.pt"
 STATE_FILE = "state.json"
 CHECKPOINT_PREFIX = "checkpoint_"
+RETIRED_PREFIX = ".retired-"   # a checkpoint dir renamed out of the checkpoint names, to be deleted (commit)
 # Identity fields (TrainJobConfig.identity) that checkpoints written before the field existed lack: the
 # value those runs had.
 IDENTITY_DEFAULTS = {"ema_decay": 0.0}
@@ -154,32 +155,54 @@ class LocalCheckpointStore:
         return found[-1] if found else None
 
     def commit(self, staged: Path, step: int) -> Path:
-        """Move a fully written checkpoint dir into place (atomic rename), then prune old ones."""
+        """Move a fully written checkpoint dir into place (atomic rename), then prune old ones.
+
+        A dir is deleted only after it is renamed out of the checkpoint names (RETIRED_PREFIX): deleted in place, a
+        deletion cut short (a second Ctrl-C, which stops at once; an error) left a checkpoint dir with its
+        state.json and without its weights, which `list` counted and resume then failed on."""
         self.root.mkdir(parents=True, exist_ok=True)
+        for leftover in self.root.glob(f"{RETIRED_PREFIX}*"):   # a deletion an earlier commit did not finish
+            shutil.rmtree(leftover, ignore_errors=True)
         final = self.root / checkpoint_dir_name(step)
-        if final.exists():
-            shutil.rmtree(final)
+        replaced = self._retire(final) if final.exists() else None
         os.replace(staged, final)
-        for old in self.list()[:-self.keep]:
-            shutil.rmtree(old, ignore_errors=True)
+        retired = [self._retire(old) for old in self.list()[:-self.keep]]
+        for path in [replaced, *retired]:
+            if path is not None:
+                shutil.rmtree(path, ignore_errors=True)
         return final
+
+    def _retire(self, checkpoint: Path) -> Path:
+        """Rename `checkpoint` out of the checkpoint names (one atomic step), to be deleted."""
+        retired = self.root / f"{RETIRED_PREFIX}{checkpoint.name}"
+        if retired.exists():
+            shutil.rmtree(retired)
+        os.replace(checkpoint, retired)
+        return retired
 
 
 def newest_complete_checkpoint(root: str | Path) -> Path | None:
-    """The newest checkpoint under `root` whose three files are all present and whose weights file
-    opens (a copy cut short by a dying worker is passed over), or None."""
+    """The newest checkpoint under `root` (by name) that `is_complete`, or None."""
+    for candidate in reversed(LocalCheckpointStore(root, keep=1).list()):
+        if is_complete(candidate):
+            return candidate
+    return None
+
+
+def is_complete(checkpoint: Path) -> bool:
+    """Whether a checkpoint dir has its three files, a readable state.json and a weights file that opens: a copy
+    cut short (Ray copies each checkpoint into its storage; a dying worker or node stops it part way) is not."""
     from safetensors import safe_open
 
-    for candidate in reversed(LocalCheckpointStore(root, keep=1).list()):
-        if not all((candidate / name).is_file() for name in (TASK_FILE, OPTIMIZER_FILE, STATE_FILE)):
-            continue
-        try:
-            with safe_open(str(candidate / TASK_FILE), framework="pt"):
-                pass
-        except Exception:  # safetensors raises its own types for truncated files
-            continue
-        return candidate
-    return None
+    if not all((checkpoint / name).is_file() for name in (TASK_FILE, OPTIMIZER_FILE, STATE_FILE)):
+        return False
+    try:
+        read_checkpoint_state(checkpoint)
+        with safe_open(str(checkpoint / TASK_FILE), framework="pt"):
+            pass
+    except Exception:  # CheckpointError, or safetensors' own types for truncated files
+        return False
+    return True
 
 
 def _cpu_tensors(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

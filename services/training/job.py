@@ -30,7 +30,7 @@ import torch
 from core.data.shards import dataset_shard_paths
 from core.errors import DataError, N3dmapError
 from services.training.checkpoints import (
-    LocalCheckpointStore, check_same_run, load_checkpoint, read_checkpoint_state,
+    LocalCheckpointStore, check_same_run, is_complete, load_checkpoint, read_checkpoint_state,
 )
 from services.training.config import TrainJobConfig
 from services.training.progress import MetricsTail
@@ -335,11 +335,12 @@ def git_commit() -> str | None:
 
 
 def latest_checkpoint_dir(config: TrainJobConfig) -> Path | None:
-    """The newest checkpoint of a run dir, whichever mode wrote it (for tools and tests)."""
+    """The newest complete checkpoint of a run dir, whichever mode wrote it: one cut short (a Ray copy stopped part
+    way, a torn state.json) is passed over, as the workers pass over it when they resume, so that the driver
+    neither exports it nor fails on it."""
     config = config.resolved()
-    candidates = []
-    for root in (config.local_checkpoint_root, config.run_path / config.ray_storage_name):
-        candidates += LocalCheckpointStore(root, keep=1).list()
+    candidates = [p for root in (config.local_checkpoint_root, config.run_path / config.ray_storage_name)
+                  for p in LocalCheckpointStore(root, keep=1).list() if is_complete(p)]
     if not candidates:
         return None
     return max(candidates, key=lambda p: read_checkpoint_state(p).step)

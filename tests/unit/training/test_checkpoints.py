@@ -94,3 +94,70 @@ def test_newest_complete_checkpoint_passes_over_a_copy_cut_short(tmp_path):
     found = newest_complete_checkpoint(tmp_path)
     assert found is not None and read_checkpoint_state(found).step == 2
     assert newest_complete_checkpoint(tmp_path / "absent") is None
+
+
+def _staged(root, task, opt, step: int):
+    import tempfile
+    from pathlib import Path
+
+    root.mkdir(parents=True, exist_ok=True)
+    directory = Path(tempfile.mkdtemp(prefix=f".staging_{step}_", dir=root))
+    save_checkpoint(directory, task=task, optimizer=opt, step=step, config={"task": "toy"}, metrics={})
+    return directory
+
+
+@pytest.mark.parametrize("cut", ["replacing", "pruning"])
+def test_a_commit_cut_short_while_deleting_leaves_only_complete_checkpoints(tmp_path, monkeypatch, cut):
+    """A second Ctrl-C stops at once, possibly inside commit's deletion of the checkpoint it replaces (the signal's
+    checkpoint at a step that already has one) or of the one it prunes: every dir the store still lists loads."""
+    import shutil
+
+    import services.training.checkpoints as checkpoints
+
+    task, opt = _trained_task_and_optimizer()
+    root = tmp_path / "checkpoints"
+    store = LocalCheckpointStore(root, keep=2)
+    store.commit(_staged(root, task, opt, 5), 5)
+    store.commit(_staged(root, task, opt, 10), 10)
+    real_rmtree = shutil.rmtree
+
+    def cut_short(path, *args, **kwargs):   # one file gone, then the interrupt
+        (tmp_path / "seen").write_text(str(path))
+        (checkpoints.Path(path) / checkpoints.TASK_FILE).unlink(missing_ok=True)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(checkpoints.shutil, "rmtree", cut_short)
+    with pytest.raises(KeyboardInterrupt):
+        store.commit(_staged(root, task, opt, 10 if cut == "replacing" else 15), 10 if cut == "replacing" else 15)
+    monkeypatch.setattr(checkpoints.shutil, "rmtree", real_rmtree)
+    assert checkpoints.RETIRED_PREFIX in (tmp_path / "seen").read_text()   # what was being deleted had been renamed
+    for directory in store.list():
+        fresh = ToyTask()
+        fresh.register_buffer("counter", torch.tensor(0, dtype=torch.int64))
+        load_checkpoint(directory, task=fresh, optimizer=torch.optim.Adam(fresh.parameters()))
+    assert store.latest().name == checkpoint_dir_name(10 if cut == "replacing" else 15)
+    store.commit(_staged(root, task, opt, 20), 20)   # the next commit clears what the cut one left
+    assert not list(root.glob(f"{checkpoints.RETIRED_PREFIX}*"))
+    assert [p.name for p in store.list()] == [checkpoint_dir_name(s) for s in ((10, 20) if cut == "replacing"
+                                                                              else (15, 20))]
+
+
+def test_the_driver_passes_over_checkpoints_cut_short(tmp_path):
+    """The run's newest checkpoint, as the driver picks it to export or to skip a finished run
+    (latest_checkpoint_dir), is a complete one, as the workers pick theirs: not a Ray copy with truncated weights,
+    and a torn state.json in an older one does not stop the rerun."""
+    from services.training.config import TrainJobConfig
+    from services.training.job import latest_checkpoint_dir
+
+    task, opt = _trained_task_and_optimizer()
+    config = TrainJobConfig(task="pretrain", data_dir=str(tmp_path / "data"), run_dir=str(tmp_path / "run"),
+                            workers=2, steps=4).resolved()
+    ray_root = config.run_path / config.ray_storage_name
+    for step in (2, 3, 4):
+        save_checkpoint(ray_root / checkpoint_dir_name(step), task=task, optimizer=opt, step=step,
+                        config=config.to_dict(), metrics={})
+    weights = ray_root / checkpoint_dir_name(4) / "task.safetensors"
+    weights.write_bytes(weights.read_bytes()[:20])                                  # the final copy cut short
+    (ray_root / checkpoint_dir_name(2) / "state.json").write_text('{"step": 2, "conf')   # an older one torn
+    assert latest_checkpoint_dir(config) == ray_root / checkpoint_dir_name(3)
+    assert newest_complete_checkpoint(ray_root) == ray_root / checkpoint_dir_name(3)
