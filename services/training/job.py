@@ -147,9 +147,15 @@ def ray_train_func(loop_config: dict) -> dict:
     config = TrainJobConfig.from_dict(loop_config["config"])
     try:
         return train_loop(config, RaySession(config)).to_dict()
+    except DataError:
+        # A bad record reaches one rank only (each decodes its own split of the stream): raised, it fails the
+        # worker group at once and its message ends the run (after Ray's --max-failures retries, which meet the
+        # record again). Returned as an error outcome, it ended this rank alone while the others waited in their
+        # next collective until gloo's 30-minute timeout, per attempt.
+        raise
     except N3dmapError as e:
-        # Bad data / options / checkpoint: the same on every rank and on every retry, so end the run
-        # with the message instead of raising (Ray would restart the workers max_failures times).
+        # Bad options / checkpoint: the same on every rank and on every retry, so end the run with the message
+        # instead of raising (Ray would restart the workers max_failures times).
         return LoopOutcome(status="error", step=-1, start_step=-1, message=str(e)).to_dict()
 
 

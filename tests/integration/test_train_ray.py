@@ -57,3 +57,44 @@ def test_rerun_resumes_at_the_saved_step(killed_run, capsys):
     records = [r for r in read_metrics(config.metrics_path) if r["start_step"] == 4]
     assert [r["step"] for r in records] == [5, 6]
     assert load_bundle(config.bundle_path).meta["provenance"]["steps"] == 6
+
+
+def test_a_bad_record_ends_a_two_worker_run_naming_it(tiny_train_data, tmp_path):
+    """One undecodable record (the shard's size unchanged, so only decoding finds it) reaches one rank only: the
+    run ends at once with one line naming the record, exit 2. Before, that rank returned an error while the other
+    waited in its next collective for gloo's 30-minute timeout (run here in a subprocess with a deadline, so a
+    hang fails the test instead of the suite)."""
+    import json
+    import os
+    import shutil
+    import signal
+    import subprocess
+    import sys
+    import tarfile
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    data = tmp_path / "data"
+    shutil.copytree(tiny_train_data, data)
+    shard_entry = json.loads((data / "manifest.json").read_text())["shards"][-1]
+    shard, key = data / shard_entry["filename"], shard_entry["keys"][0]
+    with tarfile.open(shard) as tar:
+        member = next(m for m in tar.getmembers() if m.name.startswith(key))
+    with open(shard, "r+b") as f:
+        f.seek(member.offset_data)
+        f.write(b"\0" * 64)   # the npz's zip header gone, every byte count as before
+    command = [sys.executable, "-m", "services.cli.main", "train", "pretrain", "--objective", "regression",
+               "--data", str(data), "--run-dir", str(tmp_path / "run"), "--workers", "2", "--steps", "40",
+               "--batch-size", "1", "--max-failures", "0", "--object-store-mb", "100", "--device", "cpu"]
+    env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(command, cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)   # its own process group: the embedded Ray goes with it
+    try:
+        out, err = proc.communicate(timeout=300)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        pytest.fail("the run with a bad record did not end within 300 s")
+    assert proc.returncode == 2, out[-2000:] + err[-2000:]
+    last = err.strip().splitlines()[-1]
+    assert "training failed" in last and f"{shard_entry['filename']} record {key}" in last, err[-2000:]

@@ -89,7 +89,8 @@ def sha256_file(path: str | os.PathLike, chunk: int = 1 << 20) -> str:
 
 def dataset_shard_paths(data_dir: str | os.PathLike) -> tuple[list[str], dict[str, list[str]], dict]:
     """Check a dataset directory for a streaming reader: (absolute shard paths, the manifest's record keys
-    per shard filename, manifest). DataError for a missing shard or a manifest without shards."""
+    per shard filename, manifest). DataError for a missing shard, one whose size differs from the manifest's, or
+    a manifest without shards."""
     root = Path(data_dir)
     manifest = load_manifest(root)
     paths, keys = [], {}
@@ -97,6 +98,10 @@ def dataset_shard_paths(data_dir: str | os.PathLike) -> tuple[list[str], dict[st
         path = root / entry["filename"]
         if not path.is_file():
             raise DataError(f"missing shard {entry['filename']} (listed in {root / MANIFEST_NAME})")
+        size = path.stat().st_size
+        if size != entry["bytes"]:   # as ShardDataset checks: a shard cut short or changed since it was written
+            raise DataError(f"{entry['filename']}: size {size} bytes differs from the manifest's {entry['bytes']} "
+                            "(truncated or changed shard)")
         paths.append(str(path.resolve()))
         keys[entry["filename"]] = list(entry["keys"])
     if not paths:

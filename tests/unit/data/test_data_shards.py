@@ -98,6 +98,11 @@ def test_tar_members_are_the_undecoded_records_checked_against_the_manifest(tmp_
     with open(tmp_path / "ds" / entry["filename"], "rb") as f:
         msg = _one_line_error(lambda: list(iter_tar_members(f, entry["filename"], ["ep000002"])))
     assert "shard-00001.tar" in msg and "not in the manifest" in msg
+    # a shard cut short is refused before any read task starts, naming it, as ShardDataset refuses it
+    shard = tmp_path / "ds" / entry["filename"]
+    shard.write_bytes(shard.read_bytes()[:-512])
+    msg = _one_line_error(lambda: dataset_shard_paths(tmp_path / "ds"))
+    assert entry["filename"] in msg and "differs from the manifest" in msg
 
 
 def test_deterministic_bytes_and_custom_keys(tmp_path, records):
