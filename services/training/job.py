@@ -9,7 +9,10 @@
   need one, see docs/ecosystem.md#ray) — or, with `config.attach`, the Ray cluster this process runs in (a
   Ray Jobs entrypoint) — runs `TorchTrainer` with a Ray Data stream of the shards split over the
   workers, DDP, `FailureConfig(max_failures)`, and checkpoints under RUN_DIR/ray_train/. The same
-  RunConfig(name, storage_path) on a rerun makes Ray hand the latest checkpoint back: that is resume.
+  RunConfig(name, storage_path) on a rerun makes Ray hand the latest checkpoint back: that is resume. The first
+  Ctrl-C or SIGTERM ends the worker group (Ray is shut down; fit() runs off the main thread so that Ray's own
+  SIGINT handler, which reported an aborted run as success, is never installed) and raises TrainingInterrupted
+  naming the last periodic checkpoint, where a rerun resumes.
 
 A finished run exports RUN_DIR/bundle/ (core.bundle.save_bundle) from its final checkpoint: the
 weight average's weights where the run keeps one (--ema-decay), else the last step's.
@@ -19,8 +22,8 @@ from __future__ import annotations
 
 import os
 import subprocess
+import threading
 import time
-from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -73,10 +76,11 @@ def run_training(config: TrainJobConfig, *, spec: TaskSpec = CORE_TASKS) -> RunS
     manifest = check_dataset(config)
     config.run_path.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    # In-process: the first Ctrl-C / SIGTERM stops the loop between two steps (stop_signal.py); one that
-    # comes during the last step, the final checkpoint or the export still stops the caller once the
+    # The first Ctrl-C / SIGTERM stops the run (stop_signal.py): in-process between two steps, with a checkpoint
+    # at that step; on Ray by ending the worker group (its last periodic checkpoint is where a rerun resumes).
+    # One that comes during the last step, the final checkpoint or the export still stops the caller once the
     # bundle is written, rather than being lost when the handlers are restored.
-    with graceful_stop() if config.workers == 0 else nullcontext(never) as stop_requested:
+    with graceful_stop() as stop_requested:
         done = _finished_checkpoint(config)
         if done is not None:  # rerun of a complete run: nothing to train, export again
             checkpoint_dir, state = done
@@ -85,7 +89,7 @@ def run_training(config: TrainJobConfig, *, spec: TaskSpec = CORE_TASKS) -> RunS
         else:
             _check_same_mode(config)
             outcome, checkpoint_dir = (_run_in_process(config, spec, stop_requested) if config.workers == 0
-                                       else _run_on_ray(config))
+                                       else _run_on_ray(config, stop_requested))
         if outcome.status == "interrupted":
             raise TrainingInterrupted(outcome.message)
         if outcome.status != "finished":
@@ -199,7 +203,8 @@ def _init_ray(config: TrainJobConfig) -> bool:
     return True
 
 
-def _run_on_ray(config: TrainJobConfig) -> tuple[LoopOutcome, Path | None]:
+def _run_on_ray(config: TrainJobConfig, stop_requested: Callable[[], str | None] = never
+                ) -> tuple[LoopOutcome, Path | None]:
     import ray
     import ray.data
     from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig
@@ -209,6 +214,7 @@ def _run_on_ray(config: TrainJobConfig) -> tuple[LoopOutcome, Path | None]:
 
     os.environ.setdefault("RAY_TRAIN_V2_ENABLED", "1")
     started_here = _init_ray(config)
+    stopped = False
     ray.data.DataContext.get_current().enable_progress_bars = False
     try:
         resources = {"CPU": config.cpus_per_worker}
@@ -229,17 +235,52 @@ def _run_on_ray(config: TrainJobConfig) -> tuple[LoopOutcome, Path | None]:
         )
         tail = MetricsTail(config.metrics_path).run_in_thread()
         try:
-            result = trainer.fit()
+            result = _fit_until_stopped(trainer, stop_requested)
         except Exception as e:  # TrainingFailedError wraps the worker's exception
             raise TrainingError(_root_cause_line(e)) from None
         finally:
             tail.stop()
+        if result is None:   # a stop was requested: leaving this block shuts Ray down, which ends the workers
+            stopped = True
+            latest = latest_checkpoint_dir(config)
+            where = (f"its last checkpoint is at step {read_checkpoint_state(latest).step} ({latest})" if latest
+                     else "it had saved no checkpoint yet")
+            raise TrainingInterrupted(f"stopped by {stop_requested()}: the Ray run is ended; {where}, and the "
+                                      "same command resumes from it")
         outcome = LoopOutcome(**result.return_value)
         checkpoint = result.checkpoint
         return outcome, Path(checkpoint.path) if checkpoint is not None else None
     finally:
-        if started_here:
+        # attached to a cluster too when stopped: the run's controller is this driver's, and ends with it
+        if started_here or stopped:
             ray.shutdown()
+
+
+def _fit_until_stopped(trainer, stop_requested: Callable[[], str | None]):
+    """trainer.fit()'s result, or None once `stop_requested()` says a signal asked to stop.
+
+    fit() runs on a thread of its own: on the main thread it installs Ray's own SIGINT handler, which aborts the
+    run and may end the process with sys.exit(0) (a Ctrl-C'd run reported success, exit 0) and stays installed
+    after fit returns (a later Ctrl-C started a fresh local Ray inside the handler). Off the main thread it installs
+    none, and the signals stay with graceful_stop. The thread is a daemon: once Ray is shut down its fit() ends
+    with an error or not at all, and neither may hold the process."""
+    box: dict = {}
+
+    def fit() -> None:
+        try:
+            box["result"] = trainer.fit()
+        except BaseException as e:  # handed to the caller's thread
+            box["error"] = e
+
+    thread = threading.Thread(target=fit, name="n3dmap-ray-fit", daemon=True)
+    thread.start()
+    while thread.is_alive():
+        thread.join(0.2)
+        if stop_requested() is not None:
+            return None
+    if "error" in box:
+        raise box["error"]
+    return box["result"]
 
 
 def worker_threads(config: TrainJobConfig) -> int:

@@ -98,3 +98,44 @@ def test_a_bad_record_ends_a_two_worker_run_naming_it(tiny_train_data, tmp_path)
     assert proc.returncode == 2, out[-2000:] + err[-2000:]
     last = err.strip().splitlines()[-1]
     assert "training failed" in last and f"{shard_entry['filename']} record {key}" in last, err[-2000:]
+
+
+def test_ctrl_c_ends_a_two_worker_run_as_an_interruption(tiny_train_data, tmp_path):
+    """SIGINT to `n3dmap train --workers 2` once its first checkpoint is written: the run ends (exit 130, the one
+    line naming its last checkpoint, where a rerun resumes: test_rerun_resumes_at_the_saved_step), not as Ray's
+    own handler ended it (exit 0 and no word, as if it had finished)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    run = tmp_path / "run"
+    command = [sys.executable, "-m", "services.cli.main", "train", "pretrain", "--objective", "regression",
+               "--data", str(tiny_train_data), "--run-dir", str(run), "--workers", "2", "--steps", "400",
+               "--batch-size", "1", "--checkpoint-every", "2", "--object-store-mb", "100", "--device", "cpu"]
+    env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(command, cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        deadline = time.monotonic() + 240
+        while not list((run / "ray_train").glob("checkpoint_*/state.json")) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    except BaseException:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        raise
+    assert proc.returncode == 130, out[-2000:] + err[-2000:]
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("n3dmap train: interrupted: stopped by SIGINT") and "same command resumes" in last, last
+    from services.training.checkpoints import is_complete
+
+    newest = max((p for p in (run / "ray_train").glob("checkpoint_*") if is_complete(p)),
+                 key=lambda p: read_checkpoint_state(p).step)
+    assert f"its last checkpoint is at step {read_checkpoint_state(newest).step} ({newest})" in last
+    assert not (run / "bundle").exists()
