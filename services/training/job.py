@@ -256,6 +256,18 @@ def _run_on_ray(config: TrainJobConfig, stop_requested: Callable[[], str | None]
             ray.shutdown()
 
 
+def _earlier_means(bundle_dir: Path) -> dict[str, float]:
+    """The mean_* metrics of the bundle an earlier export wrote to `bundle_dir` ({} when there is none)."""
+    from core.bundle import read_bundle_meta
+    from core.errors import BundleError
+
+    try:
+        earlier = read_bundle_meta(bundle_dir).get("metrics", {})
+    except (BundleError, OSError):
+        return {}
+    return {k: float(v) for k, v in earlier.items() if k.startswith("mean_") and isinstance(v, (int, float))}
+
+
 def _fit_until_stopped(trainer, stop_requested: Callable[[], str | None]):
     """trainer.fit()'s result, or None once `stop_requested()` says a signal asked to stop.
 
@@ -338,7 +350,12 @@ def export_bundle(config: TrainJobConfig, checkpoint_dir: str | Path, *, outcome
         parents.append(parent_provenance(parent))
     last = outcome.last_metrics or state.metrics
     metrics = {f"last_{k}": float(v) for k, v in last.items()}
-    metrics.update({f"mean_{k}": float(v) for k, v in outcome.mean_metrics.items()})
+    if outcome.mean_metrics:
+        # over this attempt's steps only: a resumed run's means start where it resumed, and say so
+        metrics.update({f"mean_{k}": float(v) for k, v in outcome.mean_metrics.items()})
+        metrics["mean_from_step"] = float(outcome.start_step + 1)
+    else:   # a rerun of a finished run trains nothing: its bundle keeps the means its export had
+        metrics.update(_earlier_means(config.bundle_path))
     save_bundle(config.bundle_path, modules=modules, preset=get_preset(config.preset),
                 provenance=run_provenance(config, manifest=manifest, steps=state.step, parents=parents),
                 metrics=metrics)

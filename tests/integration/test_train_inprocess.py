@@ -52,6 +52,14 @@ def test_regression_loss_decreases_and_bundle_is_described(tiny_train_data, tmp_
     assert prov["data_manifest"] == str(tiny_train_data / "manifest.json")
     assert info["metrics"]["last_loss"] == pytest.approx(losses[-1], rel=1e-6)
     assert info["metrics"]["mean_loss"] == pytest.approx(sum(losses) / len(losses), rel=1e-5)
+    assert info["metrics"]["mean_from_step"] == 1
+    # rerunning the finished run trains nothing and re-exports: the bundle keeps its means
+    assert _train(tiny_train_data, run, "--objective", "regression", "--steps", "10", "--batch-size", "2",
+                  "--lr", "3e-3", "--checkpoint-every", "5") == 0
+    assert "run already at step 10" in capsys.readouterr().out
+    assert main(["bundle", "info", str(run / "bundle"), "--json"]) == 0
+    again = json.loads(capsys.readouterr().out)["metrics"]
+    assert again["mean_loss"] == info["metrics"]["mean_loss"] and again["mean_from_step"] == 1
 
     assert main(["bundle", "info", str(run / "bundle")]) == 0
     text = capsys.readouterr().out
