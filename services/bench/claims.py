@@ -19,12 +19,25 @@ from services.bench import aggregate as agg
 from services.bench.aggregate import fmt, spread
 from services.bench.plan import OCCUPANCY_MODULE
 from services.bench.judge import (
-    FLOORS, UNDETERMINED, AtLeast, Better, Condition, Positive, RatioAtMost, WithinOf, derive, judge,
+    FLOORS, UNDETERMINED, AtLeast, Better, Condition, ControlFails, Positive, RatioAtMost, Unsaturated, WithinOf,
+    derive, judge,
 )
 
 AP, GAIN, EPE = FLOORS["ap"], FLOORS["gain"], FLOORS["epe"]
 EGO_RATIO = 1.5          # the egomotion module's errors may be at most this multiple of ICP's
-STABILISED_TOLERANCE = 0.1   # moving camera: |AP with the egomotion module − AP with true poses|
+# moving camera: |AP with the egomotion module − AP with true poses|. Wider than the AP margin (0.02) on purpose:
+# the paper's claim is that stabilised detection is "similar" to the static scenes', not equal, and its own
+# moving-camera curves sit below the static ones; 0.1 AP is the gap this benchmark calls similar.
+STABILISED_TOLERANCE = 0.1
+# mAP at or above which a detector has no room left: a gain measured between two such detectors is ~0 by
+# construction (the small plan's random-init detectors reach 0.995–1.000 with all 64 labels).
+MAP_CEILING = 0.98
+OCCUPANCY_TARGET = 0.95   # occupied and free accuracy (the paper: .97 / .98)
+ABSOLUTE_TARGETS = (f"occupancy accuracy ≥ {OCCUPANCY_TARGET:g} on occupied and on free voxels",
+                    f"egomotion errors ≤ {EGO_RATIO:g} × ICP's, and the untrained module not on par too",
+                    f"moving-camera AP with the egomotion module within {STABILISED_TOLERANCE:g} of the AP with true "
+                    "poses (the paper's \"similar\")",
+                    f"mAP ceiling {MAP_CEILING:g}: a gain between two detectors both at or above it is saturated")
 # Which detector rows the detection claims read, per arm, in order of preference (the other mode only when a
 # plan did not run the first). The paper's protocol: "After pre-training, we freeze the feature layers after
 # view predictive learning, and only supervise the detector module; for the fully supervised baseline (from
@@ -123,8 +136,11 @@ def check_claims(per_seed: dict, *, budgets: list[str], variants: list[str] | No
         "detection_gain_low_data", "Pretraining helps most in the low-data regime.",
         "the gap to random init is largest at few labels",
         [Positive(f"gain@{few}", AP, of=(f"contrastive@{few}", f"random@{few}")),
-         Better(f"gain@{few}", f"gain@{full}", GAIN)], v, [f"gain@{few}", f"gain@{full}"], quick=quick,
-        note="gain = contrastive − random mAP@0.5; the gain itself must be positive",
+         Better(f"gain@{few}", f"gain@{full}", GAIN),
+         Unsaturated((f"contrastive@{full}", f"random@{full}"), MAP_CEILING)], v,
+        [f"gain@{few}", f"gain@{full}", f"contrastive@{full}", f"random@{full}"], quick=quick,
+        note="gain = contrastive − random mAP@0.5; the gain itself must be positive, and with all labels the two "
+             f"detectors must leave room to differ (not both ≥ {MAP_CEILING:g})",
         untestable=why_untestable("contrastive", "random", budgets_needed=2)))
 
     for dim, paper in (("2d", "2D P@1 .20 (2D+3D contrastive) vs .00 (regression)"),
@@ -181,7 +197,8 @@ def check_claims(per_seed: dict, *, budgets: list[str], variants: list[str] | No
                            for k in ("acc_occupied", "acc_free", "acc_all")})
     claims.append(_claim(
         "occupancy_accuracy", "Occupancy from a single view is nearly perfect on labelled voxels.",
-        "occupied .97, free .98, all .98", [AtLeast("acc_occupied", 0.95), AtLeast("acc_free", 0.95)], v,
+        "occupied .97, free .98, all .98", [AtLeast("acc_occupied", OCCUPANCY_TARGET),
+                                             AtLeast("acc_free", OCCUPANCY_TARGET)], v,
         ["acc_occupied", "acc_free", "acc_all"], quick=quick,
         note="occupancy module fine-tuned from the contrastive pretraining, at the balanced threshold chosen on the "
              "validation records (each view as the input in turn)"))
@@ -190,13 +207,16 @@ def check_claims(per_seed: dict, *, budgets: list[str], variants: list[str] | No
         return lambda r: _get(r, "egomotion", "methods", method, key)
 
     v = _values(per_seed, {"model R": err("model", "rot_err_rad_mean"), "ICP R": err("icp", "rot_err_rad_mean"),
-                           "model t": err("model", "trans_err_m_mean"), "ICP t": err("icp", "trans_err_m_mean")})
+                           "model t": err("model", "trans_err_m_mean"), "ICP t": err("icp", "trans_err_m_mean"),
+                           "untrained R": err("untrained module", "rot_err_rad_mean"),
+                           "untrained t": err("untrained module", "trans_err_m_mean")})
+    on_par = (RatioAtMost("model R", "ICP R", EGO_RATIO), RatioAtMost("model t", "ICP t", EGO_RATIO))
     claims.append(_claim(
         "egomotion_vs_icp", "The egomotion module is on par with a geometric baseline.",
         "R 0.120 rad, t 0.036 m vs ORB-SLAM2 0.089 rad, 0.038 m",
-        [RatioAtMost("model R", "ICP R", EGO_RATIO), RatioAtMost("model t", "ICP t", EGO_RATIO)], v,
-        ["model R", "ICP R", "model t", "ICP t"], quick=quick, digits=4,
-        note="rad and m, moving-camera pairs; the module's last stage has no weights: the egomotion table's "
-             "untrained-module rows say how much of this its training brings"))
+        [*on_par, ControlFails(on_par, (("model R", "untrained R"), ("model t", "untrained t")))], v,
+        ["model R", "ICP R", "model t", "ICP t", "untrained R", "untrained t"], quick=quick, digits=4,
+        note="rad and m, moving-camera pairs; the module's last stage has no weights, so the same module untrained "
+             "must not be on par too, or the claim says nothing about its training"))
     return claims
 

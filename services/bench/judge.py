@@ -19,7 +19,8 @@ or "missing" (a number was not produced). The verdict, in this order:
 2. any seed disagreeing: "does not hold" — every seed must agree, so one seed that shows the other
    direction settles it whatever the other seeds lack;
 3. a missing number, or fewer than `MIN_SEEDS` seeds: "undetermined";
-4. any seed vacuous: "undetermined";
+4. any seed vacuous: "undetermined" (for `ControlFails`: an untrained control meets the claim too, so it does
+   not test training; for `Unsaturated`: the values it needs room above are at the ceiling);
 5. otherwise (every seed agrees): "holds".
 
 Nothing here is tuned to make a claim hold: floors are fixed per metric family and printed in the
@@ -159,7 +160,46 @@ class WithinOf:
         return "agree" if abs(a - b) <= self.tolerance + ROUNDING else "disagree"
 
 
-Condition = Better | Positive | AtLeast | RatioAtMost | WithinOf
+@dataclass(frozen=True)
+class ControlFails:
+    """Seed by seed: a control (an untrained module) does not also meet every one of `conditions`, read with each
+    name of `control` standing in for the name it maps from. When it does, the conditions do not test what
+    training brings: "vacuous" (the egomotion module's weightless last stage reached ICP untrained)."""
+
+    conditions: tuple
+    control: tuple[tuple[str, str], ...]   # (name, the control's name for it)
+
+    def text(self) -> str:
+        return f"the control ({', '.join(c for _, c in self.control)}) does not also meet them"
+
+    def outcome(self, v: SeedValues) -> str:
+        swapped = {**v, **{name: v.get(control) for name, control in self.control}}
+        outcomes = [c.outcome(swapped) for c in self.conditions]
+        if "missing" in outcomes:
+            return "missing"
+        return "vacuous" if all(o == "agree" for o in outcomes) else "agree"
+
+
+@dataclass(frozen=True)
+class Unsaturated:
+    """Seed by seed: not every one of `names` sits at or above `ceiling`. When all do, a comparison that needs room
+    above them cannot be made: "vacuous" (detectors at mAP ≥ 0.98 with all labels leave the gain there ~0 by
+    construction, so "the gain is largest at few labels" would follow from the gain at few labels alone)."""
+
+    names: tuple[str, ...]
+    ceiling: float
+
+    def text(self) -> str:
+        return f"not all of {', '.join(self.names)} ≥ {self.ceiling:g} (saturated)"
+
+    def outcome(self, v: SeedValues) -> str:
+        values = [v.get(n) for n in self.names]
+        if not _finite(*values):
+            return "missing"
+        return "vacuous" if all(x >= self.ceiling - ROUNDING for x in values) else "agree"
+
+
+Condition = Better | Positive | AtLeast | RatioAtMost | WithinOf | ControlFails | Unsaturated
 
 
 @dataclass(frozen=True)
@@ -191,6 +231,12 @@ def judge(conditions: list[Condition], per_seed: Mapping[str, SeedValues], *, qu
     vacuous = [(s, c) for s, row in outcomes.items() for c, o in zip(conditions, row) if o == "vacuous"]
     if vacuous:
         s, c = vacuous[0]
+        if isinstance(c, Unsaturated):
+            return Verdict(None, UNDETERMINED, f"seed {s}: {', '.join(c.names)} all ≥ {c.ceiling:g}, saturated: "
+                           "nothing is left to compare there", outcomes)
+        if isinstance(c, ControlFails):
+            return Verdict(None, UNDETERMINED, f"seed {s}: the untrained control meets the claim too, so it does "
+                           "not test what training brings", outcomes)
         return Verdict(None, UNDETERMINED, f"seed {s}: both sides of '{c.text()}' lie below the floor of "
                        "meaning", outcomes)
     return Verdict(True, HOLDS, f"all {len(per_seed)} seeds agree", outcomes)

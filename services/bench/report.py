@@ -19,6 +19,7 @@ from matplotlib.figure import Figure
 
 from services.bench import aggregate as agg
 from services.bench.claims import check_claims
+from services.bench.claims import ABSOLUTE_TARGETS
 from services.bench.judge import FLOORS, MIN_SEEDS
 from services.bench.plan import OCCUPANCY_ROWS, PRETRAINED_ARMS, BenchConfig
 from services.reports import Report
@@ -237,11 +238,13 @@ def _claims_section(report: Report, claims: list[dict], config: BenchConfig) -> 
         report.text(f"Each claim is judged seed by seed (seeds paired: each seed's models are compared with each "
                     f"other). A claim **holds** only when there are at least {MIN_SEEDS} seeds and every seed shows "
                     "the paper's direction by at least the metric's floor; it **does not hold** when a seed does "
-                    "not; it is **undetermined** when there are fewer seeds, a number is missing, or both sides "
-                    "of a comparison lie below the metric's floor of meaning (e.g. two APs under 0.05).")
+                    "not; it is **undetermined** when there are fewer seeds, a number is missing, both sides "
+                    "of a comparison lie below the metric's floor of meaning (e.g. two APs under 0.05), the values "
+                    "a comparison needs room above are saturated, or an untrained control meets the claim too.")
         report.table(["metric", "margin (least difference that counts)", "floor of meaning"],
                      [[f.name, f"{f.margin:g}", "–" if f.meaning is None else f"both < {f.meaning:g}"]
                       for f in FLOORS.values()])
+        report.text("Absolute targets and tolerances, each its own floor: " + "; ".join(ABSOLUTE_TARGETS) + ".")
     for c in claims:
         report.text(f"- **{c['id']}: {c['verdict']}** ({c['reason']}). {c['claim']} Criterion: {c['criterion']}. "
                     f"Ours (mean ± std [per seed]): {c['ours']}. Paper: {c['paper']}.")
@@ -251,7 +254,8 @@ def _claims_section(report: Report, claims: list[dict], config: BenchConfig) -> 
     if not config.quick:
         held = sum(c["holds"] is True for c in claims)
         report.text(f"{held} of {len(claims)} claims hold. Per-seed cells list each condition's outcome: agree, "
-                    "disagree, vacuous (below the floor of meaning) or missing.")
+                    "disagree, vacuous (below the floor of meaning, saturated, or met by the untrained control too) "
+                    "or missing.")
 
 
 def _stopping_section(report: Report, config: BenchConfig, stopping: dict) -> None:

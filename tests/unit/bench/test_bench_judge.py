@@ -151,7 +151,8 @@ def _result(c_few, r_few, n_few, c_all, n_all, *, ret=(0.30, 0.10), epe=(3.3, 5.
                       "contrastive, occupancy module, threshold 0.5": {"acc_occupied": 0.99, "acc_free": 0.99},
                       "contrastive, pretraining head": {"acc_occupied": 0.99, "acc_free": 0.99, "acc_all": 0.99}},
         "egomotion": {"methods": {"model": {"rot_err_rad_mean": 0.1, "trans_err_m_mean": 0.04},
-                                  "icp": {"rot_err_rad_mean": 0.09, "trans_err_m_mean": 0.04}}},
+                                  "icp": {"rot_err_rad_mean": 0.09, "trans_err_m_mean": 0.04},
+                                  "untrained module": {"rot_err_rad_mean": 0.5, "trans_err_m_mean": 0.4}}},
     }
 
 
@@ -258,7 +259,8 @@ def test_each_claim_reads_its_own_rows_not_their_neighbours():
                        "2.5D Farneback": {"ap": 0.60}, "regression, GT egomotion": {"ap": 0.90}}}
         # rotation and translation on different scales: swapping model and ICP, or R and t, fails
         r["egomotion"] = {"methods": {"model": {"rot_err_rad_mean": 0.001, "trans_err_m_mean": 0.02},
-                                      "icp": {"rot_err_rad_mean": 0.010, "trans_err_m_mean": 0.03}}}
+                                      "icp": {"rot_err_rad_mean": 0.010, "trans_err_m_mean": 0.03},
+                                      "untrained module": {"rot_err_rad_mean": 0.2, "trans_err_m_mean": 0.3}}}
         return r
 
     claims = {c["id"]: c for c in check_claims({s: result() for s in "012"}, budgets=["2", "all"])}
@@ -269,4 +271,44 @@ def test_each_claim_reads_its_own_rows_not_their_neighbours():
     assert claims["moving_camera_stabilised"]["verdict"] == HOLDS
     assert claims["egomotion_vs_icp"]["verdict"] == HOLDS
     assert claims["egomotion_vs_icp"]["per_seed"]["0"] == {"model R": 0.001, "ICP R": 0.010, "model t": 0.02,
-                                                           "ICP t": 0.03}
+                                                           "ICP t": 0.03, "untrained R": 0.2, "untrained t": 0.3}
+
+
+def test_a_claim_an_untrained_control_also_meets_tests_no_training():
+    """egomotion_vs_icp: the module's last stage has no weights, and untrained it reached ICP (session 25). When
+    the untrained module is on par too, the claim is undetermined: it says nothing about the training. When the
+    control misses either bound, the trained module's being on par is training's doing: the claim holds."""
+    def per_seed(untrained_r: float, untrained_t: float) -> dict:
+        def one() -> dict:
+            r = _result(0.60, 0.50, 0.40, 0.70, 0.65)
+            r["egomotion"]["methods"]["untrained module"] = {"rot_err_rad_mean": untrained_r,
+                                                             "trans_err_m_mean": untrained_t}
+            return r
+        return {s: one() for s in "012"}
+
+    def ego(untrained_r: float, untrained_t: float) -> dict:
+        return next(c for c in check_claims(per_seed(untrained_r, untrained_t), budgets=["2", "all"])
+                    if c["id"] == "egomotion_vs_icp")
+
+    on_par_untrained = ego(0.09, 0.04)           # the model's 0.1 / 0.04 against ICP's 0.09 / 0.04
+    assert on_par_untrained["verdict"] == UNDETERMINED
+    assert "untrained control meets the claim too" in on_par_untrained["reason"]
+    assert on_par_untrained["outcomes"]["0"] == ["agree", "agree", "vacuous"]
+    assert ego(0.09, 0.2)["verdict"] == HOLDS     # untrained off in translation: training brings that
+    assert ego(0.5, 0.04)["verdict"] == HOLDS     # untrained off in rotation
+    missing = per_seed(0.5, 0.4)
+    del missing["1"]["egomotion"]["methods"]["untrained module"]
+    ego_missing = next(c for c in check_claims(missing, budgets=["2", "all"]) if c["id"] == "egomotion_vs_icp")
+    assert ego_missing["verdict"] == UNDETERMINED and ego_missing["reason"].startswith("seed 1 lacks a number")
+
+
+def test_a_gain_at_full_labels_between_saturated_detectors_decides_nothing():
+    """detection_gain_low_data: with all labels both detectors at mAP ≥ 0.98 leave a gain of ~0 there by
+    construction, so "largest at few labels" would follow from the few-label gain alone: undetermined."""
+    saturated = {s: _result(0.60, 0.50, 0.40, 0.995, 0.99) for s in "012"}
+    claim = next(c for c in check_claims(saturated, budgets=["2", "all"]) if c["id"] == "detection_gain_low_data")
+    assert claim["verdict"] == UNDETERMINED and "saturated" in claim["reason"]
+    assert claim["outcomes"]["0"] == ["agree", "agree", "vacuous"]
+    room = {s: _result(0.60, 0.50, 0.40, 0.995, 0.90) for s in "012"}    # random-init still short of the ceiling
+    assert next(c for c in check_claims(room, budgets=["2", "all"])
+                if c["id"] == "detection_gain_low_data")["verdict"] == HOLDS
