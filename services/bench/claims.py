@@ -154,30 +154,42 @@ def check_claims(per_seed: dict, *, budgets: list[str], variants: list[str] | No
 
     moving_epe = {"contrastive": lambda r: _get(r, "flow", "contrastive", "model", "epe_l1_moving"),
                   "regression": lambda r: _get(r, "flow", "regression", "model", "epe_l1_moving"),
-                  "zero motion": lambda r: _get(r, "flow", "contrastive", "zero_motion", "epe_l1_moving")}
+                  "zero motion": lambda r: _get(r, "flow", "contrastive", "zero_motion", "epe_l1_moving"),
+                  # shown, not judged: the flow before each arm's own occupancy gate zeroes it where that arm's
+                  # pretraining head predicts free space (the paper's test-time rule, which the claims read)
+                  "contrastive, no gate": lambda r: _get(r, "flow", "contrastive", "model_raw", "epe_l1_moving"),
+                  "regression, no gate": lambda r: _get(r, "flow", "regression", "model_raw", "epe_l1_moving")}
     v = _values(per_seed, moving_epe)
+    gated = ("moving-voxel L1 EPE, voxels, of the gated flow (zero where the arm's own occupancy head predicts "
+             "free space, as the paper's test time does), so the arms' occupancy heads take part; the ungated flow "
+             "is shown beside")
     claims.append(_claim(
         "flow_contrastive_vs_regression", "3D flow over contrastive features is more accurate on moving "
         "voxels than over regression features.", "moving-voxel L1 EPE 3.33 (contrastive) vs 5.55 (regression)",
-        [Better("contrastive", "regression", EPE)], v, ["contrastive", "regression"], quick=quick,
-        note="moving-voxel L1 EPE, voxels"))
+        [Better("contrastive", "regression", EPE)], v,
+        ["contrastive", "regression", "contrastive, no gate", "regression, no gate"], quick=quick, note=gated))
     claims.append(_claim(
         "flow_vs_zero_motion", "Learned 3D flow beats the zero-motion baseline on moving voxels (zero motion "
         "wins overall, since most voxels are static).", "moving 3.33 vs 6.97 (zero); full 0.26 vs 0.19 (zero)",
-        [Better("contrastive", "zero motion", EPE)], v, ["contrastive", "zero motion"], quick=quick,
-        note="moving-voxel L1 EPE, voxels"))
+        [Better("contrastive", "zero motion", EPE)], v, ["contrastive", "zero motion", "contrastive, no gate"],
+        quick=quick, note=gated))
 
     def ap(setting: str, method: str):
         return lambda r: _get(r, "moving", setting, method, "ap")
 
     v = _values(per_seed, {"contrastive": ap("static", "contrastive, GT egomotion"),
                            "2.5D": ap("static", "2.5D Farneback"),
-                           "regression": ap("static", "regression, GT egomotion")})
+                           "regression": ap("static", "regression, GT egomotion"),
+                           "2.5D, true 2D flow": ap("static", "2.5D oracle 2D flow")})
     claims.append(_claim(
         "moving_static_vs_2p5d", "With a stationary camera, 3D-flow moving-object detection beats the 2.5D "
-        "baseline.", "PR curves: ours above the 2.5D baseline and the regression model",
-        [Better("contrastive", "2.5D", AP)], v, ["contrastive", "2.5D", "regression"], quick=quick,
-        note="static-camera AP at the bench's moving IoU"))
+        "baseline.", "PR curves: ours above the 2.5D baseline and the regression model (the paper's 2.5D "
+        "baseline, PWC-Net flow: 0.312 AP)",
+        [Better("contrastive", "2.5D", AP)], v, ["contrastive", "2.5D", "regression", "2.5D, true 2D flow"],
+        quick=quick,
+        note="static-camera AP at the bench's moving IoU; the 2.5D row's 2D flow is Farneback's, far below what "
+             "a 2D flow method could give here: the same lifting of the true 2D flow ('2.5D, true 2D flow') is "
+             "the 2.5D approach's ceiling, shown beside so that a win over a weak flow is read as one"))
     claims.append(_claim(
         "moving_static_vs_regression", "Contrastive features give better moving-object proposals than "
         "regression features.", "ours above the RGB-regression model", [Better("contrastive", "regression", AP)],

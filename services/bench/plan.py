@@ -178,6 +178,10 @@ class BenchConfig:
             raise BenchConfigError(f"precision must be fp32 or bf16, got {self.precision!r}")
         if self.retrieval_per_example < 1 or self.retrieval_cube < 1 or self.retrieval_cube % 2 == 0:
             raise BenchConfigError("retrieval needs >= 1 pair per example and an odd cube size")
+        from core.eval.protocols.moving import IOUS as MOVING_IOUS
+        if self.moving_iou not in MOVING_IOUS:   # the protocol scores AP at these only: another gave no AP at all
+            raise BenchConfigError(f"moving_iou must be one of {MOVING_IOUS} (the IoUs the moving-object protocol "
+                                   f"scores), got {self.moving_iou!r}")
         if not isinstance(self.task_options, dict):
             raise BenchConfigError(f"task_options must map a stage kind to options, got {self.task_options!r}")
         for kind, options in self.task_options.items():

@@ -55,3 +55,11 @@ def test_cli_detector_variants_reach_the_plan_and_bad_ones_are_named(tmp_path, m
     assert stop.value.code == 2 and "--detector-variants" in err and "'contrastive' is not ARM/MODE" in err
     assert main(base + ["--detector-variants", "contrastive/thawed"]) != 0  # a BenchConfigError: one line
     assert "mode one of" in capsys.readouterr().err
+
+
+def test_a_moving_iou_the_protocol_does_not_score_is_refused():
+    # the protocol scores AP at 0.25, 0.33 and 0.5 only: 0.4 gave the moving claims no AP while the PR curve
+    # quietly fell back to 0.5
+    with pytest.raises(BenchConfigError, match=r"moving_iou must be one of \(0.25, 0.33, 0.5\).*0.4"):
+        plan_for("small", moving_iou=0.4)
+    assert plan_for("small", moving_iou=0.25).moving_iou == 0.25
