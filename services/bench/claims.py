@@ -128,19 +128,24 @@ def check_claims(per_seed: dict, *, budgets: list[str], variants: list[str] | No
         [Better(f"random@{full}", f"random@{few}", AP)], v, [f"random@{few}", f"random@{full}"], quick=quick,
         untestable=why_untestable("random", budgets_needed=2)))
 
+    # The gain at few labels is compared with the gain at the next budget up (the full budget when there are only
+    # two): with all labels every detector of the small plan reaches mAP 0.995-1.000, where the gain is ~0 by
+    # construction, while the next budget still leaves room (random init 0.86 at 8 labels in the session-17 report).
+    more = budgets[1] if len(budgets) > 2 else full
     v = _values(per_seed, {f"contrastive@{few}": det("contrastive", few), f"random@{few}": det("random", few),
-                           f"contrastive@{full}": det("contrastive", full), f"random@{full}": det("random", full)})
+                           f"contrastive@{more}": det("contrastive", more), f"random@{more}": det("random", more)})
     derive(v, f"gain@{few}", lambda c, r: c - r, f"contrastive@{few}", f"random@{few}")
-    derive(v, f"gain@{full}", lambda c, r: c - r, f"contrastive@{full}", f"random@{full}")
+    derive(v, f"gain@{more}", lambda c, r: c - r, f"contrastive@{more}", f"random@{more}")
     claims.append(_claim(
         "detection_gain_low_data", "Pretraining helps most in the low-data regime.",
         "the gap to random init is largest at few labels",
         [Positive(f"gain@{few}", AP, of=(f"contrastive@{few}", f"random@{few}")),
-         Better(f"gain@{few}", f"gain@{full}", GAIN),
-         Unsaturated((f"contrastive@{full}", f"random@{full}"), MAP_CEILING)], v,
-        [f"gain@{few}", f"gain@{full}", f"contrastive@{full}", f"random@{full}"], quick=quick,
-        note="gain = contrastive − random mAP@0.5; the gain itself must be positive, and with all labels the two "
-             f"detectors must leave room to differ (not both ≥ {MAP_CEILING:g})",
+         Better(f"gain@{few}", f"gain@{more}", GAIN),
+         Unsaturated((f"contrastive@{more}", f"random@{more}"), MAP_CEILING)], v,
+        [f"gain@{few}", f"gain@{more}", f"contrastive@{more}", f"random@{more}"], quick=quick,
+        note=f"gain = contrastive − random mAP@0.5 at {few} and at {more} labels (the next budget: with all labels "
+             f"the detectors saturate); the gain itself must be positive, and at {more} labels the two detectors "
+             f"must leave room to differ (not both ≥ {MAP_CEILING:g})",
         untestable=why_untestable("contrastive", "random", budgets_needed=2)))
 
     for dim, paper in (("2d", "2D P@1 .20 (2D+3D contrastive) vs .00 (regression)"),

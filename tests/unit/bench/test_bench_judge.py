@@ -313,3 +313,23 @@ def test_a_gain_at_full_labels_between_saturated_detectors_decides_nothing():
     room = {s: _result(0.60, 0.50, 0.40, 0.995, 0.90) for s in "012"}    # random-init still short of the ceiling
     assert next(c for c in check_claims(room, budgets=["2", "all"])
                 if c["id"] == "detection_gain_low_data")["verdict"] == HOLDS
+
+
+def test_with_three_budgets_the_few_label_gain_is_compared_with_the_next_budget_up():
+    """Budgets 2, 8, all: the gain at 2 labels against the gain at 8 (with all labels every detector saturates);
+    a saturated 8-label pair is still undetermined."""
+    def result(c8: float, r8: float) -> dict:
+        r = _result(0.60, 0.50, 0.40, 1.0, 0.999)
+        r["detection"]["contrastive/finetuned/8"] = {"map": {"0.5": c8}}
+        r["detection"]["random/finetuned/8"] = {"map": {"0.5": r8}}
+        return r
+
+    def gain_claim(c8: float, r8: float) -> dict:
+        return next(c for c in check_claims({s: result(c8, r8) for s in "012"}, budgets=["2", "8", "all"])
+                    if c["id"] == "detection_gain_low_data")
+
+    held = gain_claim(0.90, 0.86)                 # gain 0.2 at 2 labels against 0.04 at 8
+    assert held["verdict"] == HOLDS and set(held["per_seed"]["0"]) >= {"gain@2", "gain@8"}
+    assert "gain@all" not in held["per_seed"]["0"]
+    assert gain_claim(0.90, 0.60)["verdict"] == FAILS          # gain 0.3 at 8 labels: larger than at 2
+    assert gain_claim(0.99, 0.985)["verdict"] == UNDETERMINED  # both saturated at 8 labels too
