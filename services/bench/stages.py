@@ -98,8 +98,11 @@ class StageRunner:
         partial_path = stage_dir / PARTIAL
         earlier = _read_seconds(partial_path) if partial_path.exists() else 0.0
         code = _read_code(partial_path) if partial_path.exists() else []
-        if self.commit is not None and self.commit not in code:
-            code = [*code, self.commit]
+        this = self.commit or UNRECORDED   # not a git checkout: unknown, said as such
+        if this not in code:
+            code = [*code, this]
+        # written before the attempt, so that one killed outright (SIGKILL, a lost machine) still names its commit
+        write_json(partial_path, {"stage": name, "seconds": earlier, "code": code})
         self.log(f"[bench] {name}: running" + (f" ({earlier:.1f} s in earlier attempts)" if earlier else ""))
         started = time.monotonic()
         try:

@@ -174,7 +174,7 @@ def forwarded_argv(task_name: str, args: argparse.Namespace) -> list[str]:
             argv.append(next(o for o in action.option_strings if o.startswith("--no-") != bool(value)))
         elif isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
             # the flag only when set: a handler may have written the other value (detector's freeze_features)
-            if value is (not isinstance(action, argparse._StoreFalseAction)):
+            if value == action.const:
                 argv.append(flag)
         elif isinstance(value, (list, tuple)):
             argv += [flag, *map(str, value)]

@@ -192,10 +192,12 @@ class MicroBatcher:
         waits that call observes)."""
         started = time.perf_counter()
         try:
-            return await self._call(loop, batch), time.perf_counter() - started
+            results = await self._call(loop, batch)
         finally:
+            model_s = time.perf_counter() - started
             if self._observe is not None:
-                self._observe(batch[0].key, len(batch), waits, time.perf_counter() - started)
+                self._observe(batch[0].key, len(batch), waits, model_s)
+        return results, model_s
 
     async def _call(self, loop, batch: list[_Pending]) -> list:
         results = await loop.run_in_executor(self._executor, self._run_batch, batch[0].key, [p.item for p in batch])

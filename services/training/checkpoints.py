@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -195,6 +196,8 @@ def is_complete(checkpoint: Path) -> bool:
     from safetensors import safe_open
 
     if not all((checkpoint / name).is_file() for name in (TASK_FILE, OPTIMIZER_FILE, STATE_FILE)):
+        return False
+    if not zipfile.is_zipfile(checkpoint / OPTIMIZER_FILE):   # torch.save's zip: a copy cut short has no directory
         return False
     try:
         read_checkpoint_state(checkpoint)

@@ -21,6 +21,7 @@ weight average's weights where the run keeps one (--ema-decay), else the last st
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import threading
 import time
@@ -180,14 +181,14 @@ def _init_ray(config: TrainJobConfig) -> bool:
     if config.attach:
         # Inside a Ray Jobs entrypoint: join that cluster (RAY_ADDRESS is set by the job supervisor).
         # No runtime_env here: the job's own (its uploaded working_dir) must reach every node.
-        ray.init(address="auto", log_to_driver=False)
+        _keeping_sigterm(lambda: ray.init(address="auto", log_to_driver=False))
         return True
     embedded_ray_defaults()
     # Workers import `core`/`services` from this checkout even when n3dmap is not pip-installed.
     pythonpath = os.pathsep.join(p for p in (str(PROJECT_ROOT), os.environ.get("PYTHONPATH")) if p)
     runtime_env = {"env_vars": {"PYTHONPATH": pythonpath}}
     gpus = int(round(config.workers * config.gpus_per_worker + 0.499)) if config.gpus_per_worker else 0
-    ray.init(
+    _keeping_sigterm(lambda: ray.init(
         address="local",
         num_cpus=config.workers * config.cpus_per_worker + 1,  # +1: Ray Data read tasks need a CPU
         num_gpus=gpus or None,
@@ -199,8 +200,21 @@ def _init_ray(config: TrainJobConfig) -> bool:
         log_to_driver=False,
         configure_logging=True,
         logging_level="WARNING",
-    )
+    ))
     return True
+
+
+def _keeping_sigterm(init: Callable[[], object]) -> None:
+    """Run `init` (ray.init) and put back the SIGTERM handler it replaces: on the main thread ray.init installs
+    one that calls sys.exit, which took SIGTERM from graceful_stop (the run exited 15 with no word)."""
+    if threading.current_thread() is not threading.main_thread():
+        init()
+        return
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        init()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _run_on_ray(config: TrainJobConfig, stop_requested: Callable[[], str | None] = never
@@ -240,8 +254,9 @@ def _run_on_ray(config: TrainJobConfig, stop_requested: Callable[[], str | None]
             raise TrainingError(_root_cause_line(e)) from None
         finally:
             tail.stop()
-        if result is None:   # a stop was requested: leaving this block shuts Ray down, which ends the workers
-            stopped = True
+        if result is None:   # a stop was requested: shutting Ray down ends the workers (attached runs too: the
+            stopped = True   # run's controller is this driver's), and only then is the last checkpoint known
+            ray.shutdown()
             latest = latest_checkpoint_dir(config)
             where = (f"its last checkpoint is at step {read_checkpoint_state(latest).step} ({latest})" if latest
                      else "it had saved no checkpoint yet")
@@ -251,8 +266,7 @@ def _run_on_ray(config: TrainJobConfig, stop_requested: Callable[[], str | None]
         checkpoint = result.checkpoint
         return outcome, Path(checkpoint.path) if checkpoint is not None else None
     finally:
-        # attached to a cluster too when stopped: the run's controller is this driver's, and ends with it
-        if started_here or stopped:
+        if started_here and not stopped:
             ray.shutdown()
 
 
@@ -288,7 +302,7 @@ def _fit_until_stopped(trainer, stop_requested: Callable[[], str | None]):
     thread.start()
     while thread.is_alive():
         thread.join(0.2)
-        if stop_requested() is not None:
+        if thread.is_alive() and stop_requested() is not None:   # finished meanwhile: its result stands
             return None
     if "error" in box:
         raise box["error"]

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from core.device import resolve_device
-from services.training.checkpoints import LocalCheckpointStore
+from services.training.checkpoints import LocalCheckpointStore, newest_complete_checkpoint
 from services.training.config import TrainJobConfig
 from services.training.seeding import shuffle_seed
 
@@ -56,7 +56,9 @@ class LocalSession:
 
     @contextlib.contextmanager
     def latest_checkpoint(self):
-        yield self.store.latest()
+        # the newest complete one, as the driver picks (job.latest_checkpoint_dir): a dir left torn by an older
+        # n3dmap's deletion is passed over rather than failed on
+        yield newest_complete_checkpoint(self.store.root)
 
     def staging_dir(self, step: int) -> Path:
         self.store.root.mkdir(parents=True, exist_ok=True)

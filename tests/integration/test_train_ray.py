@@ -100,10 +100,12 @@ def test_a_bad_record_ends_a_two_worker_run_naming_it(tiny_train_data, tmp_path)
     assert "training failed" in last and f"{shard_entry['filename']} record {key}" in last, err[-2000:]
 
 
-def test_ctrl_c_ends_a_two_worker_run_as_an_interruption(tiny_train_data, tmp_path):
-    """SIGINT to `n3dmap train --workers 2` once its first checkpoint is written: the run ends (exit 130, the one
-    line naming its last checkpoint, where a rerun resumes: test_rerun_resumes_at_the_saved_step), not as Ray's
-    own handler ended it (exit 0 and no word, as if it had finished)."""
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_a_signal_ends_a_two_worker_run_as_an_interruption(tiny_train_data, tmp_path, sig):
+    """SIGINT (Ctrl-C) or SIGTERM (`kill`, `ray job stop`) to `n3dmap train --workers 2` once its first checkpoint
+    is written: the run ends (exit 130, the one line naming its last checkpoint, where a rerun resumes:
+    test_rerun_resumes_at_the_saved_step), not as Ray's own handlers ended it (SIGINT: exit 0 and no word, as if
+    it had finished; SIGTERM: ray.init's handler, exit 15)."""
     import os
     import signal
     import subprocess
@@ -124,7 +126,7 @@ def test_ctrl_c_ends_a_two_worker_run_as_an_interruption(tiny_train_data, tmp_pa
         while not list((run / "ray_train").glob("checkpoint_*/state.json")) and time.monotonic() < deadline:
             time.sleep(0.5)
         assert proc.poll() is None, proc.communicate()
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(getattr(signal, sig))
         out, err = proc.communicate(timeout=120)
     except BaseException:
         os.killpg(proc.pid, signal.SIGKILL)
@@ -132,7 +134,7 @@ def test_ctrl_c_ends_a_two_worker_run_as_an_interruption(tiny_train_data, tmp_pa
         raise
     assert proc.returncode == 130, out[-2000:] + err[-2000:]
     last = err.strip().splitlines()[-1]
-    assert last.startswith("n3dmap train: interrupted: stopped by SIGINT") and "same command resumes" in last, last
+    assert last.startswith(f"n3dmap train: interrupted: stopped by {sig}") and "same command resumes" in last, last
     from services.training.checkpoints import is_complete
 
     newest = max((p for p in (run / "ray_train").glob("checkpoint_*") if is_complete(p)),

@@ -89,3 +89,25 @@ def test_a_stage_records_the_commit_of_each_of_its_attempts(tmp_path):
     (work / "resumed" / "stage.partial.json").write_text('{"stage": "resumed", "seconds": 5.0}')
     third.run("resumed", "done", _done)
     assert third.code["resumed"] == (["?", third.commit] if third.commit else ["?"])
+
+
+def test_an_attempt_killed_outright_still_names_its_commit(tmp_path):
+    """A process killed outright (SIGKILL, a lost machine) writes nothing when it dies: the attempt's commit is on
+    disk before the stage runs, so the stage's resume lists it; without a git checkout it is '?'."""
+    work = tmp_path / "work"
+    seen = {}
+
+    def killed(stage_dir):   # what a later process finds if this one dies here
+        seen.update(json.loads((stage_dir / "stage.partial.json").read_text()))
+
+    runner = StageRunner(work, log=lambda line: None)
+    runner.commit = "c" * 40
+    try:
+        runner.run("s", "done", killed)
+    except RuntimeError:   # finished without its marker, as a killed stage would leave it
+        pass
+    assert seen["code"] == ["c" * 40]
+    resumed = StageRunner(work, log=lambda line: None)
+    resumed.commit = None                  # e.g. run from an unpacked copy, not a git checkout
+    resumed.run("s", "done", _done)
+    assert resumed.code["s"] == ["c" * 40, "?"]

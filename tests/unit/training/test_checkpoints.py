@@ -161,3 +161,6 @@ def test_the_driver_passes_over_checkpoints_cut_short(tmp_path):
     (ray_root / checkpoint_dir_name(2) / "state.json").write_text('{"step": 2, "conf')   # an older one torn
     assert latest_checkpoint_dir(config) == ray_root / checkpoint_dir_name(3)
     assert newest_complete_checkpoint(ray_root) == ray_root / checkpoint_dir_name(3)
+    optimizer = ray_root / checkpoint_dir_name(3) / "optimizer.pt"   # a copy cut short inside the optimizer file
+    optimizer.write_bytes(optimizer.read_bytes()[:100])
+    assert latest_checkpoint_dir(config) is None and newest_complete_checkpoint(ray_root) is None
