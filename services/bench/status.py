@@ -14,6 +14,7 @@ stage.partial.json (the seconds of an attempt still running are not on disk unti
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 from core.errors import N3dmapError
@@ -54,7 +55,7 @@ def bench_status(out_dir: str | Path) -> dict:
     rows = []
     for name in _dry_run(config, work).inputs:
         stage_dir = work / name
-        row = {"name": name, "state": "to run", "seconds": None, "step": None, "max_steps": None}
+        row = {"name": name, "state": "to run", "seconds": None, "step": None, "max_steps": None, "logged": None}
         if (stage_dir / marker_of(name)).exists():
             row["state"] = "finished"
             row["seconds"] = _seconds(stage_dir / "stage.json")
@@ -67,6 +68,7 @@ def bench_status(out_dir: str | Path) -> dict:
                 row["step"] = read_checkpoint_state(latest).step if latest is not None else 0
                 rule = RULE_OF_PREFIX.get(name.split("/")[-1].split("_")[0])
                 row["max_steps"] = getattr(config.rules, rule).max_steps if rule else None
+                row["logged"] = last_logged(stage_dir / "metrics.jsonl")
         rows.append(row)
     counts = {state: sum(r["state"] == state for r in rows) for state in ("finished", "under way", "to run")}
     return {"plan": {"preset": config.preset, "seeds": list(config.seeds)}, "stages": rows, "counts": counts}
@@ -89,12 +91,43 @@ def format_status(status: dict, out_dir: str | Path) -> str:
                 where = "" if r["step"] is None else f" at step {r['step']}" + (
                     f" (its rule stops by {r['max_steps']})" if r["max_steps"] else "")
                 earlier = f", {r['seconds']:.0f} s in stopped attempts" if r["seconds"] else ""
-                line += f"; under way: {r['name'].split('/', 1)[-1]}{where}{earlier}"
+                line += f"; under way: {r['name'].split('/', 1)[-1]}{where}{earlier}{_pace(r['logged'])}"
         upcoming = next((r["name"].split("/", 1)[-1] for r in mine if r["state"] == "to run"), None)
         if upcoming:
             line += f"; next to run: {upcoming}"
         lines.append(line)
     return "\n".join(lines)
+
+
+def last_logged(metrics_path: Path, tail_bytes: int = 8192) -> dict | None:
+    """The training loop's newest progress line of a stage (its metrics.jsonl): {step, total_steps, steps_per_s,
+    age_s (seconds since it was written)}, or None (no line yet, or one this reader cannot parse)."""
+    try:
+        with open(metrics_path, "rb") as f:
+            f.seek(max(0, f.seek(0, 2) - tail_bytes))
+            lines = f.read().decode(errors="replace").splitlines()
+    except OSError:
+        return None
+    for line in reversed(lines):
+        try:
+            entry = json.loads(line)
+            return {"step": int(entry["step"]), "total_steps": int(entry["total_steps"]),
+                    "steps_per_s": float(entry.get("steps_per_s") or 0.0),
+                    "age_s": max(0.0, time.time() - float(entry["time"]))}
+        except (ValueError, KeyError, TypeError):
+            continue   # the first line of the tail is cut, or a line of another shape
+    return None
+
+
+def _pace(logged: dict | None) -> str:
+    """'; logged step 500 of 800, 0.43 steps/s (~12 min to go at that pace), 1 min ago' ('' without a line)."""
+    if not logged:
+        return ""
+    text = f"; logged step {logged['step']} of {logged['total_steps']}"
+    if logged["steps_per_s"] > 0:
+        left = (logged["total_steps"] - logged["step"]) / logged["steps_per_s"]
+        text += f", {logged['steps_per_s']:.2g} steps/s (~{left / 60:.0f} min to go at that pace)"
+    return text + f", {logged['age_s'] / 60:.0f} min ago"
 
 
 def _seconds(path: Path) -> float | None:

@@ -44,6 +44,11 @@ def out(tmp_path) -> Path:
     for step in (1, 2):
         _write(going / "checkpoints" / f"checkpoint_{step:08d}" / "state.json", {"step": step, "config": {}})
     _write(going / "checkpoints" / ".staging_9_x" / "state.json", {"step": 9, "config": {}})  # never resumed from
+    import time
+    _write(going / "metrics.jsonl", 'p": 1, "cut off"}\n'   # a tail's first line, cut
+           + json.dumps({"step": 3, "total_steps": 11, "time": time.time() - 300, "start_step": 0}) + "\n"
+           + json.dumps({"step": 4, "total_steps": 11, "time": time.time() - 120, "start_step": 0,
+                         "steps_per_s": 0.05, "loss": 1.0}) + "\n")
     _write(s0 / "eval" / "retrieval" / "random" / "metrics.json", {})
     _write(s0 / "eval" / "retrieval" / "random" / "stage.json", {"seconds": 3.0})
     _write(work / "seed1" / "eval" / "flow" / "volume" / "stage.partial.json", {"seconds": 2.0})  # an evaluation stopped
@@ -70,6 +75,8 @@ def test_every_stage_of_the_plan_is_listed_once_with_its_state(out):
     assert rows["seed0/pretrain_regression"]["seconds"] == 100.0
     going = rows["seed0/pretrain_contrastive"]
     assert (going["step"], going["max_steps"], going["seconds"]) == (2, 11, 40.0)
+    assert (going["logged"]["step"], going["logged"]["total_steps"], going["logged"]["steps_per_s"]) == (4, 11, 0.05)
+    assert 119 <= going["logged"]["age_s"] < 180 and rows["seed1/flow_volume"]["logged"] is None
     stopped_eval = rows["seed1/eval/flow/volume"]
     assert (stopped_eval["step"], stopped_eval["seconds"]) == (None, 2.0)
 
@@ -81,6 +88,9 @@ def test_the_summary_says_per_seed_what_is_under_way_and_what_runs_next(out):
     assert lines[1] == "  data: 3 of 3 finished"
     assert lines[2].startswith("  seed0: 2 of ") and "under way: pretrain_contrastive at step 2 (its rule stops by " in lines[2]
     assert "40 s in stopped attempts" in lines[2] and "next to run: detector_random_finetuned_L2" in lines[2]
+    # the loop's newest progress line: 7 steps to go at 0.05 steps/s, written two minutes ago
+    assert "; logged step 4 of 11, 0.05 steps/s (~2 min to go at that pace), 2 min ago;" in lines[2]
+    assert "logged" not in lines[3]   # no progress line written: nothing said
     assert "under way: eval/flow/volume, 2 s in stopped attempts" in lines[3] and "next to run: pretrain_regression" in lines[3]
     assert "under way: flow_volume at step 5 (its rule stops by 13)" in lines[3]
 
