@@ -109,7 +109,8 @@ def register(subparsers) -> None:
     t.add_argument("--stride", type=positive_int, default=None,
                    help="frames between record starts (default: T, non-overlapping)")
     t.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"), default=None,
-                   help="pinhole intrinsics (default: freiburg1 517.3 516.5 318.6 255.3)")
+                   help="pinhole intrinsics (default: the freiburg1/2/3 colour camera the directory's name says; "
+                        "required for other sequences)")
     t.add_argument("--max-dt", type=positive_float, default=0.02,
                    help="largest rgb/depth/pose timestamp gap, seconds")
     _import_common(t)
@@ -328,7 +329,9 @@ def cmd_preview(args: argparse.Namespace) -> int:
 
 # ----------------------------------------------------------------------------- import
 
-def _run_import(args: argparse.Namespace, fn: Callable[..., dict], **options) -> int:
+def _run_import(args: argparse.Namespace, fn: Callable[..., dict], *, describe: Callable[[dict], str] | None = None,
+                **options) -> int:
+    """Run importer `fn` as the flags say; `describe(manifest)`: a line on what the source gave (printed last)."""
     from core.data.shards import check_output_dir
     from core.presets import get_preset
 
@@ -340,7 +343,17 @@ def _run_import(args: argparse.Namespace, fn: Callable[..., dict], **options) ->
                       grid=preset.grid.to_dict(), limit=args.limit, shard_bytes=_shard_bytes(args.shard_mb),
                       overwrite=args.overwrite, on_record=progress, **options)
     _print_written(args.out, manifest)
+    if describe is not None:
+        print(describe(manifest), flush=True)
     return 0
+
+
+def _tum_counts(manifest: dict) -> str:
+    g = manifest["generator"]
+    return (f"TUM: {g['rgb_frames']} rgb frames; {g['dropped_no_depth']} without a depth frame and "
+            f"{g['dropped_no_pose']} without a pose within --max-dt {g['max_dt']:g} s skipped; "
+            f"{g['associated_frames']} kept (every --frame-step); {g['windows_skipped_for_gaps']} window(s) "
+            "skipped for spanning a gap")
 
 
 def cmd_import_authors(args: argparse.Namespace) -> int:
@@ -354,7 +367,7 @@ def cmd_import_kitti(args: argparse.Namespace) -> int:
 
 
 def cmd_import_tum(args: argparse.Namespace) -> int:
-    from core.data.importers.tum import DEFAULT_INTRINSICS, import_tum
-    return _run_import(args, import_tum, num_frames=args.frames, frame_step=args.frame_step,
+    from core.data.importers.tum import import_tum
+    return _run_import(args, import_tum, describe=_tum_counts, num_frames=args.frames, frame_step=args.frame_step,
                        stride=args.stride, max_dt=args.max_dt,
-                       intrinsics=tuple(args.intrinsics) if args.intrinsics else DEFAULT_INTRINSICS)
+                       intrinsics=tuple(args.intrinsics) if args.intrinsics else None)

@@ -45,7 +45,10 @@ def read_depth_png(path: Path, scale: float) -> np.ndarray:
             raw = np.asarray(img)
     except (UnidentifiedImageError, OSError) as e:
         raise DataError(f"{path}: cannot read depth image: {e}") from None
-    if raw.ndim != 2 or raw.dtype.kind not in "ui":
+    # 16-bit only: an 8-bit image (a depth map re-saved by an image tool) would read as depths of at most 255/scale
+    # (5 cm for TUM's 5000) without a word; PIL reads 16-bit greys as uint16 or, for mode "I", int32 ≤ 65535
+    if raw.ndim != 2 or not (raw.dtype == np.uint16 or (raw.dtype == np.int32 and raw.min(initial=0) >= 0
+                                                         and raw.max(initial=0) <= 65535)):
         raise DataError(f"{path}: depth must be a single-channel 16-bit PNG, got {raw.dtype} {raw.shape}")
     return (raw.astype(np.float64) / scale).astype(np.float32)
 

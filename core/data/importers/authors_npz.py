@@ -81,6 +81,17 @@ def load_authors_npz(path: str | os.PathLike) -> dict[str, np.ndarray]:
     for k in ("tidlists", "scorelists"):
         if d[k].shape != (S, N):
             raise DataError(f"{path}: key '{k}': expected shape {(S, N)}, got {d[k].shape}")
+    # One time step: the reference camera and the boxes are the same for every view (entry 0 is what is read).
+    # The authors' *sequence* files have the same keys with S time steps, a camR and boxes per step: read as
+    # one instant they would fuse frames of different times as simultaneous views.
+    for k, tol in (("origin_T_camRs", 1e-4), ("boxlists", 1e-4), ("tidlists", 0), ("scorelists", 0)):
+        first = d[k][:1].astype(np.float64)
+        if not np.allclose(d[k].astype(np.float64), first, rtol=0.0, atol=tol):
+            s = int(np.flatnonzero(~np.isclose(d[k].astype(np.float64), first, rtol=0.0, atol=tol)
+                                    .reshape(S, -1).all(axis=1))[0])
+            raise DataError(f"{path}: key '{k}' differs between entry 0 and entry {s}: this importer reads files "
+                            "of one time step (S views, one reference camera and one box list); the authors' "
+                            "sequence files hold S time steps")
     return d
 
 

@@ -6,9 +6,14 @@ A sequence directory holds
                          and orientation in the motion-capture world, i.e. world_T_cam
 Depth PNGs are uint16 holding metres × 5000 (0 = missing) and registered to the colour camera.
 
-Each rgb frame is associated with the nearest depth frame and the nearest pose within `max_dt`
-seconds (frames without both are skipped); every `frame_step`-th associated frame is kept, and records
-are windows of T consecutive kept frames starting every `stride` frames (default T). V = 1, K = 0.
+Each rgb frame is paired one to one with a depth frame within `max_dt` seconds, closest pairs first (as TUM's
+own associate.py: a depth frame is never used twice), and with the nearest pose within `max_dt`; frames
+without both are skipped and counted. Every `frame_step`-th associated frame is kept, and records are windows
+of T consecutive kept frames starting every `stride` frames (default T); a window spanning a gap (a step more
+than MAX_GAP_FACTOR × the median step between kept frames: dropped frames, a motion-capture outage) is
+skipped and counted, since a record carries no timestamps to show it. V = 1, K = 0. The camera: `intrinsics`,
+else the freiburg1/2/3 colour camera the directory's name says (the dataset's calibration page); lens
+distortion is not undone.
 Frames: `world` = the motion-capture world of groundtruth.txt; `ref` = the record's first camera, so
 world_T_ref[t] = world_T_cam[0, 0] for every t.
 """
@@ -28,9 +33,21 @@ from core.data.shards import DEFAULT_SHARD_BYTES
 from core.errors import DataError
 from core.geometry import se3
 
-# freiburg1 colour camera (fx, fy, cx, cy), from the dataset's calibration page.
-DEFAULT_INTRINSICS = (517.3, 516.5, 318.6, 255.3)
+# The colour cameras (fx, fy, cx, cy) of the dataset's calibration page, by the name its sequences carry.
+CAMERAS = {"freiburg1": (517.3, 516.5, 318.6, 255.3), "freiburg2": (520.9, 521.0, 325.1, 249.7),
+           "freiburg3": (535.4, 539.2, 320.1, 247.6)}
+DEFAULT_INTRINSICS = CAMERAS["freiburg1"]
 DEPTH_SCALE = 5000.0
+MAX_GAP_FACTOR = 1.5   # a step longer than this × the median step between kept frames is a gap
+
+
+def camera_of(root: Path) -> tuple[float, float, float, float]:
+    """The freiburgN camera a sequence directory's name says (rgbd_dataset_freiburg3_long_office...)."""
+    named = [name for name in CAMERAS if name in root.resolve().name]
+    if len(named) != 1:
+        raise DataError(f"{root}: its name says no TUM camera (freiburg1, freiburg2 or freiburg3); give the "
+                        "sequence's own --intrinsics FX FY CX CY")
+    return CAMERAS[named[0]]
 
 
 def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
@@ -90,16 +107,33 @@ def nearest(stamps: np.ndarray, queries: np.ndarray, max_dt: float) -> np.ndarra
     return np.where(np.abs(stamps[pick] - queries) <= max_dt, pick, -1)
 
 
-def associate(root: Path, max_dt: float) -> list[tuple[float, str, str, np.ndarray]]:
-    """(rgb timestamp, rgb file, depth file, world_T_cam 4×4) of every rgb frame with a depth frame and a
-    pose within max_dt seconds, in time order."""
+def pair_one_to_one(a: np.ndarray, b: np.ndarray, max_dt: float) -> np.ndarray:
+    """For each time of sorted `a`, the index of its partner in sorted `b` (-1: none): pairs within max_dt,
+    closest first, each entry of `b` used at most once (TUM's associate.py)."""
+    candidates = []
+    for i, t in enumerate(a):
+        lo, hi = np.searchsorted(b, t - max_dt, "left"), np.searchsorted(b, t + max_dt, "right")
+        candidates += [(abs(float(b[j]) - float(t)), i, j) for j in range(lo, hi)]
+    partner = np.full(len(a), -1)
+    used = np.zeros(len(b), bool)
+    for _, i, j in sorted(candidates):
+        if partner[i] < 0 and not used[j]:
+            partner[i], used[j] = j, True
+    return partner
+
+
+def associate(root: Path, max_dt: float) -> tuple[list[tuple[float, str, str, np.ndarray]], dict[str, int]]:
+    """((rgb timestamp, rgb file, depth file, world_T_cam 4×4) of every rgb frame with a depth frame (one to one)
+    and a pose within max_dt seconds, in time order; {rgb_frames, dropped_no_depth, dropped_no_pose})."""
     rgb_t, rgb_files = read_file_list(root / "rgb.txt")
     depth_t, depth_files = read_file_list(root / "depth.txt")
     pose_t, poses = read_groundtruth(root / "groundtruth.txt")
-    d_idx = nearest(depth_t, rgb_t, max_dt)
+    d_idx = pair_one_to_one(rgb_t, depth_t, max_dt)
     p_idx = nearest(pose_t, rgb_t, max_dt)
+    counts = {"rgb_frames": len(rgb_t), "dropped_no_depth": int((d_idx < 0).sum()),
+              "dropped_no_pose": int(((d_idx >= 0) & (p_idx < 0)).sum())}
     return [(float(rgb_t[i]), rgb_files[i], depth_files[d_idx[i]], poses[p_idx[i]])
-            for i in range(len(rgb_t)) if d_idx[i] >= 0 and p_idx[i] >= 0]
+            for i in range(len(rgb_t)) if d_idx[i] >= 0 and p_idx[i] >= 0], counts
 
 
 def tum_window_to_record(root: Path, frames: list[tuple[float, str, str, np.ndarray]],
@@ -110,6 +144,10 @@ def tum_window_to_record(root: Path, frames: list[tuple[float, str, str, np.ndar
     if rgb.shape[2:4] != depth.shape[2:4]:
         raise DataError(f"{root}: rgb {rgb.shape[2:4]} and depth {depth.shape[2:4]} sizes differ "
                         f"(frame {frames[0][1]})")
+    H, W = rgb.shape[2:4]
+    if not (0 <= pix_T_cam[0, 2] < W and 0 <= pix_T_cam[1, 2] < H):   # e.g. the full-size camera on resized frames
+        raise DataError(f"{root}: the principal point ({pix_T_cam[0, 2]:g}, {pix_T_cam[1, 2]:g}) lies outside the "
+                        f"{W}×{H} images (frame {frames[0][1]}); give the images' own --intrinsics")
     world_T_cam = np.stack([f[3] for f in frames])[:, None]                               # T×1×4×4
     T = len(frames)
     return {
@@ -124,11 +162,12 @@ def tum_window_to_record(root: Path, frames: list[tuple[float, str, str, np.ndar
 
 def import_tum(src: str | os.PathLike, out_dir: str | os.PathLike, *, num_frames: int = 2,
                frame_step: int = 1, stride: int | None = None,
-               intrinsics: tuple[float, float, float, float] = DEFAULT_INTRINSICS, max_dt: float = 0.02,
+               intrinsics: tuple[float, float, float, float] | None = None, max_dt: float = 0.02,
                split: str = "train", preset_name: str = "paper", grid: Mapping | None = None,
                limit: int | None = None, shard_bytes: int = DEFAULT_SHARD_BYTES, overwrite: bool = False,
                on_record: Callable[[int, str], None] | None = None) -> dict:
-    """Convert one TUM RGB-D sequence directory into a dataset of T=num_frames windows."""
+    """Convert one TUM RGB-D sequence directory into a dataset of T=num_frames windows (module docstring);
+    intrinsics None: the freiburgN camera the directory's name says."""
     root = Path(src)
     if not root.exists():
         raise DataError(f"TUM sequence directory {root} does not exist")
@@ -137,14 +176,19 @@ def import_tum(src: str | os.PathLike, out_dir: str | os.PathLike, *, num_frames
     if num_frames < 1 or frame_step < 1 or (stride is not None and stride < 1):
         raise DataError("num_frames, frame_step and stride must be at least 1")
     stride = stride or num_frames
-    frames = associate(root, max_dt)[::frame_step]
+    intrinsics = tuple(intrinsics) if intrinsics is not None else camera_of(root)
+    associated, counts = associate(root, max_dt)
+    frames = associated[::frame_step]
     if len(frames) < num_frames:
         raise DataError(f"{root}: only {len(frames)} associated rgb/depth/pose frames "
                         f"(within {max_dt} s), fewer than T={num_frames}")
     fx, fy, cx, cy = intrinsics
     pix_T_cam = np.eye(4)
     pix_T_cam[0, 0], pix_T_cam[1, 1], pix_T_cam[0, 2], pix_T_cam[1, 2] = fx, fy, cx, cy
-    starts = range(0, len(frames) - num_frames + 1, stride)
+    steps = np.diff([f[0] for f in frames])                        # seconds between consecutive kept frames
+    gap_s = MAX_GAP_FACTOR * float(np.median(steps)) if len(steps) else None
+    windows = range(0, len(frames) - num_frames + 1, stride)
+    starts = [s for s in windows if gap_s is None or (steps[s:s + num_frames - 1] <= gap_s).all()]
     sequence = record_key(root.resolve().name)
 
     def records() -> Iterator[dict]:
@@ -155,7 +199,10 @@ def import_tum(src: str | os.PathLike, out_dir: str | os.PathLike, *, num_frames
 
     generator = {"source": "tum", "src": str(root.resolve()), "num_frames": num_frames,
                  "frame_step": frame_step, "stride": stride, "intrinsics": list(intrinsics),
-                 "max_dt": max_dt, "associated_frames": len(frames),
+                 "max_dt": max_dt, "associated_frames": len(frames), **counts,
+                 "windows_skipped_for_gaps": len(windows) - len(starts), "gap_s": gap_s,
+                 "largest_step_s": max((float(steps[s:s + num_frames - 1].max()) for s in starts
+                                        if num_frames > 1), default=0.0),
                  "frame": "world = mocap world; ref = first camera of each record"}
     return write_imported(out_dir, records(), split=split, preset_name=preset_name, grid=grid,
                           generator=generator, limit=limit, shard_bytes=shard_bytes, overwrite=overwrite,

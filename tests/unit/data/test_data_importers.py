@@ -11,7 +11,7 @@ from PIL import Image
 
 from core.data.importers.authors_npz import import_authors_npz
 from core.data.importers.kitti import import_kitti
-from core.data.importers.tum import import_tum, nearest
+from core.data.importers.tum import CAMERAS, import_tum, nearest, pair_one_to_one
 from core.data.shards import ShardDataset
 from core.errors import DataError
 
@@ -90,6 +90,75 @@ def test_tum_errors(tmp_path, tum_dir):
         import_tum(root, tmp_path / "out")
     with pytest.raises(DataError, match="does not exist"):
         import_tum(tmp_path / "nope", tmp_path / "out")
+
+
+def test_tum_counts_what_it_skips_and_refuses_what_it_cannot_read(tmp_path, tum_dir):
+    root = tum_dir[0]
+    manifest = import_tum(root, tmp_path / "out", num_frames=2, intrinsics=(3.0, 3.5, 2.5, 1.5))
+    g = manifest["generator"]
+    assert (g["rgb_frames"], g["dropped_no_depth"], g["dropped_no_pose"], g["windows_skipped_for_gaps"]) == (3, 1, 0, 0)
+    # the camera the directory's name says (freiburg1) — whose principal point lies outside these 6×4 images
+    with pytest.raises(DataError, match=r"principal point \(318.6, 255.3\) lies outside the 6×4 images"):
+        import_tum(root, tmp_path / "out2")
+    renamed = root.rename(root.with_name("my_sequence"))
+    with pytest.raises(DataError, match="its name says no TUM camera.*--intrinsics"):
+        import_tum(renamed, tmp_path / "out3")
+    # an 8-bit depth image would read as depths of at most 5 cm: refused, naming the file
+    depth_file = renamed / "depth" / "1.005000.png"
+    Image.fromarray(np.full((4, 6), 200, np.uint8)).save(depth_file)
+    with pytest.raises(DataError, match=r"1.005000.png: depth must be a single-channel 16-bit PNG, got uint8"):
+        import_tum(renamed, tmp_path / "out4", intrinsics=(3.0, 3.5, 2.5, 1.5))
+
+
+def test_the_tum_cameras_are_the_calibration_pages():
+    assert CAMERAS == {"freiburg1": (517.3, 516.5, 318.6, 255.3), "freiburg2": (520.9, 521.0, 325.1, 249.7),
+                       "freiburg3": (535.4, 539.2, 320.1, 247.6)}
+
+
+def test_a_depth_frame_pairs_with_one_rgb_frame_closest_first():
+    """TUM's associate.py: candidate pairs within max_dt, closest first, each frame used once — against a slow
+    reference that tries every pairing."""
+    import itertools
+
+    rgb = np.array([1.033, 1.066, 1.100, 1.140])
+    depth = np.array([1.050, 1.101, 1.300])
+    got = pair_one_to_one(rgb, depth, 0.02)
+    assert list(got) == [-1, 0, 1, -1]        # 1.050 goes to 1.066 (16 ms), not to 1.033 (17 ms) as well
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        a, b = np.sort(rng.uniform(0, 1, 5)), np.sort(rng.uniform(0, 1, 4))
+        got = pair_one_to_one(a, b, 0.15)
+        assert len({j for j in got if j >= 0}) == (got >= 0).sum()          # each b at most once
+        pairs = sorted((abs(b[j] - a[i]), i, j) for i, j in itertools.product(range(5), range(4))
+                       if abs(b[j] - a[i]) <= 0.15)
+        want, used_a, used_b = np.full(5, -1), set(), set()
+        for _, i, j in pairs:                                                  # greedy, written out
+            if i not in used_a and j not in used_b:
+                want[i] = j
+                used_a.add(i)
+                used_b.add(j)
+        np.testing.assert_array_equal(got, want)
+
+
+def test_a_window_across_a_gap_is_skipped_and_counted(tmp_path):
+    """Poses missing for 2 s (a motion-capture outage): the window across it would hold two steps 2 s apart beside
+    others 0.1 s apart, and a record carries no timestamps to show it."""
+    root = tmp_path / "rgbd_dataset_freiburg2_gap"
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    stamps = [1.0, 1.1, 1.2, 1.3, 3.3, 3.4, 3.5, 3.6]
+    for t in stamps:
+        Image.fromarray(np.zeros((4, 6, 3), np.uint8)).save(root / "rgb" / f"{t:.6f}.png")
+        Image.fromarray(np.full((4, 6), 5000, np.uint16)).save(root / "depth" / f"{t:.6f}.png")
+    (root / "rgb.txt").write_text("".join(f"{t:.6f} rgb/{t:.6f}.png\n" for t in stamps))
+    (root / "depth.txt").write_text("".join(f"{t:.6f} depth/{t:.6f}.png\n" for t in stamps))
+    (root / "groundtruth.txt").write_text("".join(f"{t:.6f} {t} 0 0 0 0 0 1\n" for t in stamps))
+    manifest = import_tum(root, tmp_path / "out", num_frames=2, stride=1, intrinsics=(3.0, 3.0, 2.5, 1.5))
+    g = manifest["generator"]
+    assert g["windows_skipped_for_gaps"] == 1 and manifest["num_records"] == 6     # 7 windows, one across 1.3→3.3
+    assert g["largest_step_s"] == pytest.approx(0.1) and g["gap_s"] == pytest.approx(0.15)
+    positions = [ShardDataset(tmp_path / "out")[i]["world_T_cam"][:, 0, 0, 3] for i in range(6)]
+    assert all(abs(p[1] - p[0] - 0.1) < 1e-5 for p in positions)
 
 
 def test_nearest_matches_brute_force():
@@ -236,3 +305,21 @@ def test_authors_npz_errors(tmp_path):
         import_authors_npz(tmp_path / "bad.npz", tmp_path / "out")
     with pytest.raises(DataError, match="no .npz files"):
         import_authors_npz(tmp_path / "out", tmp_path / "out2")
+
+
+@pytest.mark.parametrize("key", ["origin_T_camRs", "boxlists", "tidlists", "scorelists"])
+def test_an_authors_sequence_file_is_refused_not_fused_as_one_instant(tmp_path, key):
+    """The authors' sequence files have the same keys with S time steps (a reference camera and boxes per step);
+    read as one instant (entry 0 of each) they would fuse frames of different times as simultaneous views."""
+    _authors_file(tmp_path / "a.npz")
+    with np.load(tmp_path / "a.npz") as z:
+        d = {k: z[k].copy() for k in z.files}
+    if key == "origin_T_camRs":
+        d[key][1, 0, 3] += 5.0                    # camR moved 5 m at step 1
+    elif key == "boxlists":
+        d[key][1, 0, 0] += 5.0                    # the box moved to x + 5 at step 1
+    else:
+        d[key][1, 0] = -7 if key == "tidlists" else 0.5
+    np.savez(tmp_path / "seq.npz", **d)
+    with pytest.raises(DataError, match=rf"seq.npz: key '{key}' differs between entry 0 and entry 1"):
+        import_authors_npz(tmp_path / "seq.npz", tmp_path / "out")
