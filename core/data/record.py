@@ -26,6 +26,8 @@ import numpy as np
 
 from core.errors import DataError
 
+RIGID_TOL = 1e-3   # |RᵀR − I| of a pose's rotation: float32 round-off of a real rotation sits far below it
+
 # key -> (dtype, named dims). Dim names shared between keys must agree within one record.
 RECORD_SCHEMA: dict[str, tuple[np.dtype, tuple[str | int, ...]]] = {
     "rgb": (np.dtype(np.uint8), ("T", "V", "H", "W", 3)),
@@ -54,8 +56,9 @@ def validate_record(rec: Mapping[str, np.ndarray], where: str) -> dict[str, int]
 
     Raises DataError("<where>: key '<k>': <what is wrong>") on a missing or unexpected key, a
     non-array value, a wrong dtype, rank or dimension, disagreeing dims between keys, a non-finite
-    value, a negative depth, an intrinsics matrix without positive focal lengths, or a pose whose
-    bottom row is not (0, 0, 0, 1).
+    value, a negative depth, an intrinsics matrix that is not a pinhole one with positive focal lengths, or a
+    pose whose bottom row is not (0, 0, 0, 1) or whose rotation is not one (|RᵀR − I| ≤ RIGID_TOL, det R > 0) —
+    the checks the inference service makes of the same matrices (services/inference/validation.py).
     """
     if not isinstance(rec, Mapping):
         raise DataError(f"{where}: a record must be a dict of arrays, got {type(rec).__name__}")
@@ -105,10 +108,20 @@ def validate_record(rec: Mapping[str, np.ndarray], where: str) -> dict[str, int]
     pix_T_cam = rec["pix_T_cam"]
     if not ((pix_T_cam[:, 0, 0] > 0).all() and (pix_T_cam[:, 1, 1] > 0).all()):
         raise DataError(f"{where}: key 'pix_T_cam': focal lengths fx=[0,0], fy=[1,1] must be positive")
+    pinhole = np.array([[0, 1, 0, 0], [1, 0, 0, 0], [1, 1, 1, 1], [1, 1, 1, 1]], bool)   # entries that must be 0/1
+    want = np.array([[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], np.float64)
+    if (np.abs(pix_T_cam.astype(np.float64) - want)[:, pinhole] > 1e-6).any():
+        raise DataError(f"{where}: key 'pix_T_cam': must be pinhole matrices [[fx,0,cx,0],[0,fy,cy,0],[0,0,1,0],"
+                        "[0,0,0,1]] (no skew)")
     for key in _POSE_KEYS:
         bottom = rec[key][..., 3, :]
         if not np.allclose(bottom, np.array([0, 0, 0, 1], np.float32), atol=1e-5):
             raise DataError(f"{where}: key '{key}': pose bottom row must be (0, 0, 0, 1)")
+        R = rec[key][..., :3, :3].astype(np.float64)                                      # ...×3×3
+        orthogonality = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max()
+        if orthogonality > RIGID_TOL or (np.linalg.det(R) <= 0).any():
+            raise DataError(f"{where}: key '{key}': poses must be rigid (|RᵀR − I| ≤ {RIGID_TOL:g}, det R > 0), got "
+                            f"|RᵀR − I| = {orthogonality:.2g}, det R from {np.linalg.det(R).min():.3g}")
     return dims
 
 

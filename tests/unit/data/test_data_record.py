@@ -100,6 +100,19 @@ def test_bad_values(make_record):
     rec = make_record()
     rec["world_T_ref"][0, 3, 0] = 1.0
     _expect(rec, "'world_T_ref'", "bottom row")
+    rec = make_record()
+    rec["pix_T_cam"][0, 0, 1] = 0.5                     # skew
+    _expect(rec, "'pix_T_cam'", "pinhole")
+    rec = make_record()
+    rec["world_T_cam"][0, 0, 0, 0] = 1.1                # a scaled axis: not a rotation
+    _expect(rec, "'world_T_cam'", "rigid")
+    rec = make_record()
+    rec["world_T_ref"][0, :3, :3] = np.diag([1.0, 1.0, -1.0])   # a reflection: orthogonal, det −1
+    _expect(rec, "'world_T_ref'", "rigid")
+    rec = make_record()                                  # float32 round-off of a real rotation passes
+    c, s_ = np.cos(0.3), np.sin(0.3)
+    rec["world_T_cam"][0, 0, :3, :3] = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]], np.float32)
+    validate_record(rec, "x")
 
 
 def test_empty_time_axis(make_record):
