@@ -60,18 +60,15 @@ class ShutdownDeadline:
     def __init__(self, drain_s: float):
         self.drain_s = drain_s
         self.started: float | None = None
-        self._on_start: list[Callable[[], Awaitable[None]]] = []
-
-    def on_start(self, hook: Callable[[], Awaitable[None]]) -> None:
-        """Await `hook()` when the shutdown starts (work that must begin then: draining the other transport)."""
-        self._on_start.append(hook)
+        # awaited when the shutdown starts: work that must begin then (draining the other transport)
+        self.on_start: Callable[[], Awaitable[None]] | None = None
 
     async def start(self) -> None:
         if self.started is not None:
             return
         self.started = time.monotonic()
-        for hook in self._on_start:
-            await hook()
+        if self.on_start is not None:
+            await self.on_start()
 
     def left(self) -> float:
         """Seconds left to the deadline (the whole drain if the shutdown has not started: a failed startup)."""
@@ -99,17 +96,18 @@ def build_app(settings: ServeSettings, runtime: Runtime, shutdown: ShutdownDeadl
             raise OSError(f"gRPC server failed to start on {settings.host}:{settings.grpc_port}: {e}") from e
         app.state.grpc_port = port
         loop = asyncio.get_running_loop()
-        grpc_stopped: list[asyncio.Task] = []
+        grpc_drain: asyncio.Task | None = None
 
-        async def stop_grpc() -> None:
+        async def drain_grpc() -> None:
             """Turn health NOT_SERVING and start gRPC's drain (once), as a task that runs beside uvicorn's."""
-            if grpc_stopped:
+            nonlocal grpc_drain
+            if grpc_drain is not None:
                 return
             for name in ("", "n3dmap.v1.Inference"):
                 await health.set(name, health_pb2.HealthCheckResponse.NOT_SERVING)
-            grpc_stopped.append(asyncio.create_task(server.stop(grace=shutdown.left())))
+            grpc_drain = asyncio.create_task(server.stop(grace=shutdown.left()))
 
-        shutdown.on_start(stop_grpc)
+        shutdown.on_start = drain_grpc
 
         async def reload_on_signal():
             try:
@@ -127,8 +125,8 @@ def build_app(settings: ServeSettings, runtime: Runtime, shutdown: ShutdownDeadl
         finally:
             loop.remove_signal_handler(signal.SIGHUP)
             await shutdown.start()   # started already when uvicorn shut down; here when the app is stopped otherwise
-            await stop_grpc()
-            await grpc_stopped[0]
+            await drain_grpc()
+            await grpc_drain
             await runtime.stop(drain_s=shutdown.left())
             print("n3dmap serve: stopped", file=sys.stderr, flush=True)
 
