@@ -109,8 +109,9 @@ def register(subparsers) -> None:
     t.add_argument("--stride", type=positive_int, default=None,
                    help="frames between record starts (default: T, non-overlapping)")
     t.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"), default=None,
-                   help="pinhole intrinsics (default: the freiburg1/2/3 colour camera the directory's name says; "
-                        "required for other sequences)")
+                   help="pinhole intrinsics (default: 525 525 319.5 239.5, the camera of every TUM sequence's "
+                        "registered depth images, as the dataset's calibration page says; give the images' own "
+                        "for resized frames)")
     t.add_argument("--max-dt", type=positive_float, default=0.02,
                    help="largest rgb/depth/pose timestamp gap, seconds")
     _import_common(t)

@@ -12,8 +12,7 @@ without both are skipped and counted. Every `frame_step`-th associated frame is 
 of T consecutive kept frames starting every `stride` frames (default T); a window spanning a gap (a step more
 than MAX_GAP_FACTOR × the median step between kept frames: dropped frames, a motion-capture outage) is
 skipped and counted, since a record carries no timestamps to show it. V = 1, K = 0. The camera: `intrinsics`,
-else the freiburg1/2/3 colour camera the directory's name says (the dataset's calibration page); lens
-distortion is not undone.
+else TUM_DEPTH_CAMERA for every sequence.
 Frames: `world` = the motion-capture world of groundtruth.txt; `ref` = the record's first camera, so
 world_T_ref[t] = world_T_cam[0, 0] for every t.
 """
@@ -33,21 +32,17 @@ from core.data.shards import DEFAULT_SHARD_BYTES
 from core.errors import DataError
 from core.geometry import se3
 
-# The colour cameras (fx, fy, cx, cy) of the dataset's calibration page, by the name its sequences carry.
-CAMERAS = {"freiburg1": (517.3, 516.5, 318.6, 255.3), "freiburg2": (520.9, 521.0, 325.1, 249.7),
-           "freiburg3": (535.4, 539.2, 320.1, 247.6)}
-DEFAULT_INTRINSICS = CAMERAS["freiburg1"]
+# The camera of every TUM sequence's depth images, (fx, fy, cx, cy) — not the per-sensor colour calibrations
+# (freiburg1: 517.3, 516.5, 318.6, 255.3 with lens distortion; ...). The dataset's calibration page
+# (cvg.cit.tum.de/data/datasets/rgbd-dataset/intrinsic_calibration): the OpenNI driver undistorts the images with
+# the sensor's factory calibration and reprojects the depth images into the colour camera's frame, so "the
+# conversion from the 2D images to 3D point clouds is the same for all datasets" with these values, and the
+# file-format page recommends them "without undistortion, as undistortion of the pre-registered depth images
+# is not trivial". Unprojecting with a colour calibration instead would scale points' x and y against the
+# depth sensor's own geometry: by 525/517.3 (+1.5 %, freiburg1) down to 525/539.2 (−2.6 %, freiburg3's y).
+TUM_DEPTH_CAMERA = (525.0, 525.0, 319.5, 239.5)
 DEPTH_SCALE = 5000.0
 MAX_GAP_FACTOR = 1.5   # a step longer than this × the median step between kept frames is a gap
-
-
-def camera_of(root: Path) -> tuple[float, float, float, float]:
-    """The freiburgN camera a sequence directory's name says (rgbd_dataset_freiburg3_long_office...)."""
-    named = [name for name in CAMERAS if name in root.resolve().name]
-    if len(named) != 1:
-        raise DataError(f"{root}: its name says no TUM camera (freiburg1, freiburg2 or freiburg3); give the "
-                        "sequence's own --intrinsics FX FY CX CY")
-    return CAMERAS[named[0]]
 
 
 def read_file_list(path: Path) -> tuple[np.ndarray, list[str]]:
@@ -167,7 +162,7 @@ def import_tum(src: str | os.PathLike, out_dir: str | os.PathLike, *, num_frames
                limit: int | None = None, shard_bytes: int = DEFAULT_SHARD_BYTES, overwrite: bool = False,
                on_record: Callable[[int, str], None] | None = None) -> dict:
     """Convert one TUM RGB-D sequence directory into a dataset of T=num_frames windows (module docstring);
-    intrinsics None: the freiburgN camera the directory's name says."""
+    intrinsics None: TUM_DEPTH_CAMERA."""
     root = Path(src)
     if not root.exists():
         raise DataError(f"TUM sequence directory {root} does not exist")
@@ -176,7 +171,7 @@ def import_tum(src: str | os.PathLike, out_dir: str | os.PathLike, *, num_frames
     if num_frames < 1 or frame_step < 1 or (stride is not None and stride < 1):
         raise DataError("num_frames, frame_step and stride must be at least 1")
     stride = stride or num_frames
-    intrinsics = tuple(intrinsics) if intrinsics is not None else camera_of(root)
+    intrinsics = tuple(intrinsics) if intrinsics is not None else TUM_DEPTH_CAMERA
     associated, counts = associate(root, max_dt)
     frames = associated[::frame_step]
     if len(frames) < num_frames:

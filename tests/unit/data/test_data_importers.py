@@ -11,7 +11,7 @@ from PIL import Image
 
 from core.data.importers.authors_npz import import_authors_npz
 from core.data.importers.kitti import import_kitti
-from core.data.importers.tum import CAMERAS, import_tum, nearest, pair_one_to_one
+from core.data.importers.tum import TUM_DEPTH_CAMERA, import_tum, nearest, pair_one_to_one
 from core.data.shards import ShardDataset
 from core.errors import DataError
 
@@ -97,12 +97,10 @@ def test_tum_counts_what_it_skips_and_refuses_what_it_cannot_read(tmp_path, tum_
     manifest = import_tum(root, tmp_path / "out", num_frames=2, intrinsics=(3.0, 3.5, 2.5, 1.5))
     g = manifest["generator"]
     assert (g["rgb_frames"], g["dropped_no_depth"], g["dropped_no_pose"], g["windows_skipped_for_gaps"]) == (3, 1, 0, 0)
-    # the camera the directory's name says (freiburg1) — whose principal point lies outside these 6×4 images
-    with pytest.raises(DataError, match=r"principal point \(318.6, 255.3\) lies outside the 6×4 images"):
+    # the default camera is the full-size 640×480 one: its principal point lies outside these 6×4 images
+    with pytest.raises(DataError, match=r"principal point \(319.5, 239.5\) lies outside the 6×4 images"):
         import_tum(root, tmp_path / "out2")
     renamed = root.rename(root.with_name("my_sequence"))
-    with pytest.raises(DataError, match="its name says no TUM camera.*--intrinsics"):
-        import_tum(renamed, tmp_path / "out3")
     # an 8-bit depth image would read as depths of at most 5 cm: refused, naming the file
     depth_file = renamed / "depth" / "1.005000.png"
     Image.fromarray(np.full((4, 6), 200, np.uint8)).save(depth_file)
@@ -110,9 +108,37 @@ def test_tum_counts_what_it_skips_and_refuses_what_it_cannot_read(tmp_path, tum_
         import_tum(renamed, tmp_path / "out4", intrinsics=(3.0, 3.5, 2.5, 1.5))
 
 
-def test_the_tum_cameras_are_the_calibration_pages():
-    assert CAMERAS == {"freiburg1": (517.3, 516.5, 318.6, 255.3), "freiburg2": (520.9, 521.0, 325.1, 249.7),
-                       "freiburg3": (535.4, 539.2, 320.1, 247.6)}
+def test_a_full_size_frame_of_any_sequence_unprojects_as_the_tum_page_says(tmp_path):
+    """Without --intrinsics every sequence (whatever its directory's name) gets the camera of TUM's calibration
+    page, on which "the conversion from the 2D images to 3D point clouds is the same for all datasets": the
+    page's loop, written out here for a row and a column of pixels, against core.geometry's unprojection."""
+    import torch
+
+    from core.geometry.camera import depth_to_points
+
+    root = tmp_path / "rgbd_dataset_freiburg3_anything"
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    rng = np.random.default_rng(1)
+    for t in ("1.000000", "1.100000"):
+        Image.fromarray(np.zeros((480, 640, 3), np.uint8)).save(root / "rgb" / f"{t}.png")
+        Image.fromarray(rng.integers(1000, 20000, (480, 640), dtype=np.uint16)).save(root / "depth" / f"{t}.png")
+    (root / "rgb.txt").write_text("1.000000 rgb/1.000000.png\n1.100000 rgb/1.100000.png\n")
+    (root / "depth.txt").write_text("1.000000 depth/1.000000.png\n1.100000 depth/1.100000.png\n")
+    (root / "groundtruth.txt").write_text("1.000 0 0 0 0 0 0 1\n1.100 0 0 0 0 0 0 1\n")
+    manifest = import_tum(root, tmp_path / "out", num_frames=2)
+    assert manifest["generator"]["intrinsics"] == [525.0, 525.0, 319.5, 239.5]
+    rec, _ = _only_record(tmp_path / "out")
+    assert TUM_DEPTH_CAMERA == (525.0, 525.0, 319.5, 239.5)
+    depth = rec["depth"][0, 0]                                                      # H×W metres
+    xyz, valid = depth_to_points(torch.from_numpy(depth)[None], torch.from_numpy(rec["pix_T_cam"]))
+    xyz = xyz[0].reshape(480, 640, 3).numpy()                                       # H×W×3
+    assert valid.all()
+    focal_length, center_x, center_y = 525.0, 319.5, 239.5
+    for v, u in [(v, 17) for v in range(0, 480, 7)] + [(301, u) for u in range(0, 640, 7)]:
+        d = depth[v, u]
+        want = ((u - center_x) * d / focal_length, (v - center_y) * d / focal_length, d)
+        np.testing.assert_allclose(xyz[v, u], want, rtol=1e-6, atol=1e-7)
 
 
 def test_a_depth_frame_pairs_with_one_rgb_frame_closest_first():
