@@ -69,7 +69,7 @@ def register(subparsers) -> None:
                    help="labelled training records for the detector, e.g. 2 8 32 all")
     p.add_argument("--label-draws", type=_positive_int, default=None, metavar="K",
                    help="train the smallest budget's detectors on K disjoint label sets (records [d*N, (d+1)*N)) and "
-                        "report their mean (default: the preset's plan: small 4, tiny 1)")
+                        "report their mean (default: the preset's plan: small 4, paper 4, tiny 1)")
     p.add_argument("--detector-variants", type=_variant, nargs="+", default=None, metavar="ARM/MODE",
                    help="the detector rows to train, ARM one of random, regression, contrastive and MODE frozen or "
                         "finetuned, e.g. random/finetuned regression/frozen contrastive/frozen contrastive/finetuned "

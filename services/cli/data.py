@@ -61,7 +61,7 @@ def register(subparsers) -> None:
     g.add_argument("--texture-scale", type=positive_float, nargs=2, default=None, metavar=("LO", "HI"),
                    help="pattern cell sizes (metres) of the objects' textures, drawn uniformly per object "
                         "(default: the preset's, at least one voxel)")
-    g.add_argument("--shard-mb", type=positive_float, default=256.0, help="target shard size in MB")
+    g.add_argument("--shard-mb", type=positive_float, default=256.0, help="target shard size in MiB")
     g.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
     g.add_argument("--jobs", type=positive_int, default=None,
                    help="render processes, one torch thread each (default: min(CPUs, 4), or 1 for a "
@@ -124,7 +124,7 @@ def _import_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", choices=["tiny", "small", "paper"], default="paper",
                    help="the map grid recorded in the manifest (default: paper)")
     p.add_argument("--limit", type=positive_int, default=None, help="import at most this many records")
-    p.add_argument("--shard-mb", type=positive_float, default=256.0, help="target shard size in MB")
+    p.add_argument("--shard-mb", type=positive_float, default=256.0, help="target shard size in MiB")
     p.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
 
 

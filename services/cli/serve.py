@@ -37,7 +37,7 @@ def register(subparsers) -> None:
     p.add_argument("--frame-dt", type=frame_interval, default=DEFAULT_FRAME_DT, metavar="S", help=FRAME_DT_HELP)
     add_moving_object_arguments(p)  # the moving-objects route and both gRPC calls
     add_egomotion_arguments(p)
-    p.add_argument("--max-body-mb", type=positive_float, default=64.0, help="largest request body (default 64 MB)")
+    p.add_argument("--max-body-mb", type=positive_float, default=64.0, help="largest request body in MiB (default 64)")
     p.add_argument("--max-request-pixels", type=positive_int, default=MAX_REQUEST_PIXELS, metavar="N",
                    help="most pixels one request may decode over all its images, rgb and depth each counted, "
                         f"on both transports (default {MAX_REQUEST_PIXELS} = 64 Mi: one instant of 16 full-HD "
