@@ -3,7 +3,8 @@
 Sections, in the paper's order: semi-supervised detection (mAP vs number of labels per pretraining,
 frozen and fine-tuned; the mAP@{0.33,0.5,0.75} table), retrieval P@1/5/10 (2D and 3D), flow EPE
 (full/static/moving with the zero-motion row), moving-object PR curves (static camera, moving camera,
-2.5D baselines), occupancy accuracy, egomotion vs ICP, then the claims, then the stages' wall times.
+2.5D baselines), occupancy accuracy, egomotion vs ICP, then the claims, the learned chain's targets
+(services.bench.targets), the stopping rules, then the stages' wall times.
 Every number is the mean over seeds, with ± the (population) standard deviation when there are several.
 metrics.json's "metrics" holds the same tables (mean/std/n/values per cell), the claims, the config,
 the seeds, the wall times and the raw per-seed results.
@@ -20,12 +21,13 @@ from matplotlib.figure import Figure
 from services.bench import aggregate as agg
 from services.bench.claims import check_claims
 from services.bench.claims import ABSOLUTE_TARGETS
+from services.bench.targets import check_targets
 from services.bench.judge import FLOORS, MIN_SEEDS
 from services.bench.plan import OCCUPANCY_ROWS, PRETRAINED_ARMS, BenchConfig
 from services.reports import Report
 
 METRIC_KEYS = ("config", "seeds", "wall_time_s", "stage_seconds", "stage_code", "total_stage_seconds", "detection",
-               "retrieval", "flow", "moving", "occupancy", "egomotion", "claims", "per_seed", "stopping")
+               "retrieval", "flow", "moving", "occupancy", "egomotion", "claims", "targets", "per_seed", "stopping")
 
 
 def _budget_names(config: BenchConfig) -> list[str]:
@@ -54,6 +56,7 @@ def write_bench_report(out: Path, *, config: BenchConfig, results: dict, stage_s
     budgets = _budget_names(config)
     claims = check_claims(per_seed, budgets=budgets, variants=[f"{a}/{m}" for a, m in config.detector_variants],
                           quick=config.quick)
+    targets = check_targets(per_seed)
     total_stages = sum(v for v in stage_seconds.values() if isinstance(v, float) and math.isfinite(v))
 
     report = Report(kind="bench_paper", title=f"Paper benchmark on the synthetic world ({config.preset} preset)",
@@ -84,13 +87,14 @@ def write_bench_report(out: Path, *, config: BenchConfig, results: dict, stage_s
     _occupancy_section(report, tables["occupancy"])
     _egomotion_section(report, tables["egomotion"])
     _claims_section(report, claims, config)
+    _targets_section(report, targets, config)
     _stopping_section(report, config, stopping or {})
     _stages_section(report, stage_seconds, ran, wall_time_s, total_stages, stage_code)
 
     report.metrics = {
         "config": config.to_dict(), "seeds": list(config.seeds), "wall_time_s": wall_time_s,
         "stage_seconds": stage_seconds, "stage_code": stage_code, "total_stage_seconds": total_stages, **tables,
-        "claims": claims,
+        "claims": claims, "targets": targets,
         "per_seed": per_seed, "stopping": stopping or {},
     }
     report.write(out)
@@ -256,6 +260,19 @@ def _claims_section(report: Report, claims: list[dict], config: BenchConfig) -> 
         report.text(f"{held} of {len(claims)} claims hold. Per-seed cells list each condition's outcome: agree, "
                     "disagree, vacuous (below the floor of meaning, saturated, or met by the untrained control too) "
                     "or missing.")
+
+
+def _targets_section(report: Report, targets: list[dict], config: BenchConfig) -> None:
+    report.heading("The learned chain's targets")
+    report.text("The bars the project set the learned chain on this benchmark (services/bench/targets.py), beside "
+                f"the paper's claims: each is met only when every seed meets it (at least {MIN_SEEDS} seeds); "
+                "'no' when a seed misses it; 'undetermined' when a number is missing."
+                + (" **Quick profile: not judged.**" if config.quick else ""))
+    seeds = sorted({s for t in targets for s in t["per_seed"]}, key=lambda s: (not s.isdigit(), int(s) if s.isdigit() else s))
+    verdict = {True: "met", False: "no", None: "undetermined"}
+    report.table(["target", "criterion", "met", *[f"seed {s}" for s in seeds]],
+                 [[t["id"], t["criterion"], "–" if config.quick else verdict[t["met"]],
+                   *[t["per_seed"].get(s, "–") for s in seeds]] for t in targets])
 
 
 def _stopping_section(report: Report, config: BenchConfig, stopping: dict) -> None:
