@@ -174,7 +174,7 @@ class DetectorTask(nn.Module):
         rgb, depth = batch["rgb"][:, t], batch["depth"][:, t]      # B×V×3×H×W, B×V×H×W
         poses = cam_T_ref(batch, t, t)                            # B×V×4×4
         if self.cfg.freeze_features:
-            if self.training and self.frozen_maps is not None:  # each example's map alone, kept for later epochs
+            if self.training and self.frozen_maps is not None and self.frozen_maps.enabled:  # each example's map alone, kept
                 return self.frozen_maps.maps(self.mapper, rgb, depth, batch["pix_T_cam"], poses)
             with torch.no_grad():
                 return self.mapper(rgb, depth, batch["pix_T_cam"], poses)

@@ -48,6 +48,7 @@ from core.models.flow_synthetic import (
 from core.models.egomotion_inputs import fused_input_volume
 from core.models.latent_map import Mapper
 from core.presets import Preset
+from core.tasks.frozen_maps import FrozenMapCache
 from core.tasks.poses import cam_T_ref
 from core.tasks.view_subset import random_view_subset
 
@@ -87,6 +88,16 @@ class FlowTaskConfig:
     # Each step trains on a random subset of at least this many of the record's views (core.tasks.view_subset);
     # None (default): every view. Measured at 1 in session 6: no gain on single-view pairs (see that module).
     min_views: int | None = None
+    # MiB of each training example's flow inputs (both maps or volumes, and the occupied voxels) kept across
+    # steps (core.tasks.frozen_maps; 0 = none). Why: with every view the inputs of a record are the same at
+    # every epoch, and the frozen mapper's two forwards were ~10 % of a flow-over-features step (small preset,
+    # the bench's recipe, one thread). One small-preset record's pair over features is ~17 MB, so 1536 holds
+    # the small plan's 64 training records; a cache that mostly misses turns itself off.
+    frozen_input_cache_mb: int = 1536
+
+    def __post_init__(self) -> None:
+        if self.frozen_input_cache_mb < 0:
+            raise ValueError(f"frozen_input_cache_mb must be >= 0 MiB, got {self.frozen_input_cache_mb}")
 
 
 def smoothness(flow: torch.Tensor) -> torch.Tensor:
@@ -124,6 +135,8 @@ class FlowTask(nn.Module):
                            zero_bias=config.zero_bias, cost_channels=config.cost_channels,
                            refine_radius=config.refine_radius, refine_aggregate=config.refine_aggregate)
         self._generator = torch.Generator().manual_seed(config.seed) if config.seed is not None else None
+        self.frozen_inputs = (FrozenMapCache(max_bytes=config.frozen_input_cache_mb << 20)
+                              if config.frozen_input_cache_mb > 0 else None)
 
     @staticmethod
     def from_preset(preset: Preset, **overrides) -> "FlowTask":
@@ -159,13 +172,23 @@ class FlowTask(nn.Module):
     @torch.no_grad()
     def flow_inputs(self, batch: dict[str, torch.Tensor], t: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """What the flow module compares, t and t+1 in ref_t (B×C×Z×Y×X each, C = flow.in_channels), and
-        the occupied voxels of t (B×1×Z×Y×X)."""
-        v0, v1 = self.stabilised_volumes(batch, t)
-        occupied = (v0[:, :1] > 0).to(v0.dtype)  # B×1×Z×Y×X
-        if self.cfg.inputs == "volume":
-            return v0, v1, occupied  # the frozen mapper is not needed for training
-        f0, f1 = self.stabilised_maps(batch, t)
-        return f0, f1, occupied
+        the occupied voxels of t (B×1×Z×Y×X). In training, from the cache of each example's inputs when it has
+        them (`FlowTaskConfig.frozen_input_cache_mb`)."""
+        rgb, depth = batch["rgb"], batch["depth"]
+        views = [rgb[:, t], depth[:, t], rgb[:, t + 1], depth[:, t + 1], batch["pix_T_cam"],
+                 cam_T_ref(batch, t, t), cam_T_ref(batch, t + 1, t)]   # B×V×…, the pair's views, poses in ref_t
+        if self.training and self.frozen_inputs is not None and self.frozen_inputs.enabled:
+            return self.frozen_inputs.outputs(self.mapper, self._pair_inputs, views)
+        return self._pair_inputs(views)
+
+    def _pair_inputs(self, views: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(rgb_t, depth_t, rgb_t1, depth_t1, pix_T_cam, cam_t_T_ref, cam_t1_T_ref), each B×V×… -> flow_inputs'."""
+        rgb0, depth0, rgb1, depth1, pix, cam0, cam1 = views
+        v0 = fused_input_volume(rgb0, depth0, pix, cam0, self.cfg.grid)  # B×4×Z×Y×X
+        occupied = (v0[:, :1] > 0).to(v0.dtype)                          # B×1×Z×Y×X
+        if self.cfg.inputs == "volume":  # the frozen mapper is not needed for training
+            return v0, fused_input_volume(rgb1, depth1, pix, cam1, self.cfg.grid), occupied
+        return self.mapper(rgb0, depth0, pix, cam0), self.mapper(rgb1, depth1, pix, cam1), occupied
 
     @torch.no_grad()
     def reprojected_input(self, batch: dict[str, torch.Tensor], t: int, motion: torch.Tensor) -> torch.Tensor:

@@ -1,14 +1,20 @@
-"""A bounded cache of a frozen mapper's latent maps, keyed by a digest of each example's inputs.
+"""A bounded cache of what a frozen module computes per example, keyed by a digest of the example's inputs.
 
 Why: a detector trained on frozen features (the paper's protocol, `DetectorTaskConfig.freeze_features`)
 recomputes the same map of the same record and time step at every epoch — at 2 labelled records there are
 4 distinct maps — and the mapper's forward was ~40 % of its step (small preset, one thread: 0.59 of 1.36 s).
+Flow over frozen features (core.tasks.flow) recomputes the same pair of maps of a record at every epoch too.
 
-Each example's map is computed alone (a batch of one), so its value does not depend on which examples share
-its batch or on what the cache held before: a run resumed from a checkpoint, with an empty cache, gets the
-same maps bit for bit. The cache empties itself when any of the mapper's tensors changed (weights loaded, a
-move to another device: each tensor's storage and version counter are part of the check) or the autocast
-state did; it keeps the most recently used maps within `max_bytes`.
+Each example's outputs are computed alone (a batch of one), so their value does not depend on which examples
+share its batch or on what the cache held before: a run resumed from a checkpoint, with an empty cache, gets
+the same outputs bit for bit. The cache empties itself when any of the frozen module's tensors changed
+(weights loaded, a move to another device: each tensor's storage and version counter are part of the check)
+or the autocast state did; it keeps the most recently used outputs within `max_bytes`.
+
+A cache too small for the data it sees (the paper preset's 1024 records' maps against a budget that holds a
+few dozen) would only cost: every example computed alone instead of in its batch, and hashed. So after
+`PROBE_LOOKUPS` lookups a cache whose hit rate is below `MIN_HIT_RATE` empties itself and turns off
+(`enabled` False); its owner then computes the batch as it would without one.
 """
 
 from __future__ import annotations
@@ -32,31 +38,37 @@ def _digest(tensors: list[torch.Tensor]) -> bytes:
     return h.digest()
 
 
+PROBE_LOOKUPS = 256   # lookups before the hit rate is judged
+MIN_HIT_RATE = 0.5    # below it (after PROBE_LOOKUPS) the cache turns itself off
+
+
 class FrozenMapCache:
     """`maps(mapper, rgb, depth, pix_T_cam, cam_T_ref)` -> the mapper's maps B×F×Z×Y×X under no_grad, each
-    example's computed alone and kept for the next call with the same inputs. The caller keeps the mapper
-    frozen and in eval mode (BatchNorm's running statistics: each example's map is then its own)."""
+    example's computed alone and kept for the next call with the same inputs; `outputs(module, compute,
+    inputs)` the same for any computation of a frozen module. The caller keeps the module frozen and in eval
+    mode (BatchNorm's running statistics: each example's output is then its own)."""
 
     def __init__(self, *, max_bytes: int) -> None:
         if max_bytes < 0:
             raise ValueError(f"FrozenMapCache: max_bytes must be >= 0, got {max_bytes}")
         self.max_bytes = int(max_bytes)
-        self._maps: OrderedDict[bytes, torch.Tensor] = OrderedDict()
+        self._entries: OrderedDict[bytes, tuple[torch.Tensor, ...]] = OrderedDict()
         self._bytes = 0
         self._state: tuple | None = None
         self.hits = 0
         self.misses = 0
+        self.enabled = True
 
     def __len__(self) -> int:
-        return len(self._maps)
+        return len(self._entries)
 
     def clear(self) -> None:
-        self._maps.clear()
+        self._entries.clear()
         self._bytes = 0
 
-    def _check_state(self, mapper: nn.Module) -> None:
-        """Empty the cache when the mapper's tensors or the autocast state differ from the last call's."""
-        state = (tuple((t.data_ptr(), t._version) for t in chain(mapper.parameters(), mapper.buffers())),
+    def _check_state(self, module: nn.Module) -> None:
+        """Empty the cache when the module's tensors or the autocast state differ from the last call's."""
+        state = (tuple((t.data_ptr(), t._version) for t in chain(module.parameters(), module.buffers())),
                  torch.is_autocast_enabled(), torch.get_autocast_dtype("cuda"), torch.get_autocast_dtype("cpu"))
         if state != self._state:
             self.clear()
@@ -65,30 +77,43 @@ class FrozenMapCache:
     def maps(self, mapper: nn.Module, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam: torch.Tensor,
              cam_T_ref: torch.Tensor) -> torch.Tensor:
         """rgb B×V×3×H×W, depth B×V×H×W, pix_T_cam B×…×4×4, cam_T_ref B×V×4×4 (the Mapper's inputs) -> B×F×Z×Y×X."""
-        self._check_state(mapper)
-        inputs = (rgb, depth, pix_T_cam, cam_T_ref)
+        return self.outputs(mapper, lambda example: (mapper(*example),), [rgb, depth, pix_T_cam, cam_T_ref])[0]
+
+    def outputs(self, module: nn.Module, compute, inputs: list[torch.Tensor]) -> tuple[torch.Tensor, ...]:
+        """compute(example inputs, each 1×…) -> a tuple of 1×… tensors, for each example of the B×… `inputs`
+        (from the cache when the same inputs came before and `module` has not changed) -> the tuple with each
+        tensor B×… (the examples' outputs concatenated in order)."""
+        if not self.enabled:
+            raise RuntimeError("FrozenMapCache.outputs: the cache turned itself off (its hit rate was too low); "
+                               "compute the batch directly")
+        self._check_state(module)
         out = []
         with torch.no_grad():
-            for b in range(rgb.shape[0]):
+            for b in range(inputs[0].shape[0]):
                 example = [x[b:b + 1] for x in inputs]                  # each 1×…
                 key = _digest(example)
-                cached = self._maps.get(key)
+                cached = self._entries.get(key)
                 if cached is not None:
-                    self._maps.move_to_end(key)
+                    self._entries.move_to_end(key)
                     self.hits += 1
                 else:
                     self.misses += 1
-                    cached = mapper(*example)                           # 1×F×Z×Y×X
+                    cached = tuple(compute(example))                    # each 1×…
                     self._keep(key, cached)
                 out.append(cached)
-        return torch.cat(out, dim=0)                                    # B×F×Z×Y×X
+        result = tuple(torch.cat(parts, dim=0) for parts in zip(*out))  # each B×…
+        lookups = self.hits + self.misses
+        if lookups >= PROBE_LOOKUPS and self.hits < MIN_HIT_RATE * lookups:
+            self.enabled = False
+            self.clear()
+        return result
 
-    def _keep(self, key: bytes, value: torch.Tensor) -> None:
-        size = value.numel() * value.element_size()
+    def _keep(self, key: bytes, value: tuple[torch.Tensor, ...]) -> None:
+        size = sum(t.numel() * t.element_size() for t in value)
         if size > self.max_bytes:
             return
         while self._bytes + size > self.max_bytes:
-            _, dropped = self._maps.popitem(last=False)
-            self._bytes -= dropped.numel() * dropped.element_size()
-        self._maps[key] = value
+            _, dropped = self._entries.popitem(last=False)
+            self._bytes -= sum(t.numel() * t.element_size() for t in dropped)
+        self._entries[key] = value
         self._bytes += size

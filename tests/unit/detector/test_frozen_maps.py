@@ -126,3 +126,63 @@ def test_frozen_detector_trains_through_the_cache_as_without_it(batch):
     assert task.frozen_maps.misses + task.frozen_maps.hits == misses
     with pytest.raises(ValueError, match="frozen_map_cache_mb"):
         build_task("detector", TINY, seed=0, frozen_map_cache_mb=-1)
+
+
+def test_a_cache_that_mostly_misses_turns_itself_off_and_one_that_hits_stays_on():
+    """After PROBE_LOOKUPS lookups, a hit rate under MIN_HIT_RATE empties and disables the cache (every example
+    computed alone, and hashed, for nothing); its owner then computes batches directly."""
+    from core.tasks.frozen_maps import MIN_HIT_RATE, PROBE_LOOKUPS
+
+    module = torch.nn.Linear(2, 2)
+    double = lambda example: (example[0] * 2,)   # noqa: E731 — each example's "output"
+    missing = FrozenMapCache(max_bytes=1 << 20)
+    for i in range(PROBE_LOOKUPS // 4):             # every example new: no hits
+        assert missing.enabled
+        examples = (4 * i + torch.arange(4.0))[:, None].expand(4, 3)   # 4 values never seen before
+        torch.testing.assert_close(missing.outputs(module, double, [examples])[0], 2 * examples)
+    assert not missing.enabled and len(missing) == 0 and missing.misses == PROBE_LOOKUPS
+    with pytest.raises(RuntimeError, match="turned itself off"):
+        missing.outputs(module, double, [torch.zeros(1, 3)])
+    hitting = FrozenMapCache(max_bytes=1 << 20)
+    for i in range(PROBE_LOOKUPS):                  # 8 distinct examples over and over
+        hitting.outputs(module, double, [torch.full((1, 3), float(i % 8))])
+    assert hitting.enabled and hitting.hits >= MIN_HIT_RATE * (hitting.hits + hitting.misses) and len(hitting) == 8
+
+
+def test_flow_over_frozen_features_trains_through_the_cache_as_without_it():
+    """The flow task's inputs (both maps or volumes, and the occupied voxels) come from the cache in training:
+    equal to the uncached ones (the slow reference: the batch computed directly), one computation per
+    record, and the same losses over 3 Adam steps; eval mode never uses it."""
+    from core.tasks.flow import FlowTask
+
+    batch = records_to_batch([generate_record(TINY, seed=s, num_frames=2, moving_ego=True) for s in (3, 4)])
+    for inputs in ("features", "volume"):
+        losses = {}
+        for mb in (0, 64):
+            torch.manual_seed(0)
+            task = FlowTask.from_preset(TINY, seed=0, inputs=inputs, frozen_input_cache_mb=mb)
+            task.train()
+            if mb:
+                direct = task._pair_inputs([batch["rgb"][:, 0], batch["depth"][:, 0], batch["rgb"][:, 1],
+                                            batch["depth"][:, 1], batch["pix_T_cam"], cam_T_ref(batch, 0, 0),
+                                            cam_T_ref(batch, 1, 0)])
+                for got, want in zip(task.flow_inputs(batch, 0), direct):
+                    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+            opt = torch.optim.Adam([p for p in task.parameters() if p.requires_grad], lr=1e-3)
+            losses[mb] = []
+            for _ in range(3):
+                out = task(batch)
+                opt.zero_grad(set_to_none=True)
+                out["loss"].backward()
+                opt.step()
+                losses[mb].append(float(out["loss"].detach()))
+            if mb:
+                assert (task.frozen_inputs.misses, task.frozen_inputs.hits, len(task.frozen_inputs)) == (2, 6, 2)
+                task.eval()
+                task.flow_inputs(batch, 0)
+                assert task.frozen_inputs.hits + task.frozen_inputs.misses == 8   # eval: not looked up
+            else:
+                assert task.frozen_inputs is None
+        torch.testing.assert_close(losses[64], losses[0], atol=1e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="frozen_input_cache_mb"):
+        FlowTask.from_preset(TINY, frozen_input_cache_mb=-1)
