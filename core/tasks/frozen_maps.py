@@ -12,9 +12,11 @@ the same outputs bit for bit. The cache empties itself when any of the frozen mo
 or the autocast state did; it keeps the most recently used outputs within `max_bytes`.
 
 A cache too small for the data it sees (the paper preset's 1024 records' maps against a budget that holds a
-few dozen) would only cost: every example computed alone instead of in its batch, and hashed. So after
-`PROBE_LOOKUPS` lookups a cache whose hit rate is below `MIN_HIT_RATE` empties itself and turns off
-(`enabled` False); its owner then computes the batch as it would without one.
+few dozen) would only cost: every example computed alone instead of in its batch, and hashed. So once it is
+full (its first eviction, or an output too large to keep), it counts its next `PROBE_LOOKUPS` lookups; if
+fewer than `MIN_HIT_RATE` of them hit, it empties itself and turns off (`enabled` False), and its owner then
+computes the batch as it would without one. Counting from the first eviction, not from the start, keeps the
+misses of filling it (which any cache has) out of the verdict.
 """
 
 from __future__ import annotations
@@ -38,8 +40,8 @@ def _digest(tensors: list[torch.Tensor]) -> bytes:
     return h.digest()
 
 
-PROBE_LOOKUPS = 256   # lookups before the hit rate is judged
-MIN_HIT_RATE = 0.5    # below it (after PROBE_LOOKUPS) the cache turns itself off
+PROBE_LOOKUPS = 256   # lookups, once the cache is full, whose hit rate is judged
+MIN_HIT_RATE = 0.5    # below it the cache turns itself off
 
 
 class FrozenMapCache:
@@ -58,6 +60,8 @@ class FrozenMapCache:
         self.hits = 0
         self.misses = 0
         self.enabled = True
+        self._full = False            # an output was evicted or too large to keep: the probe counts from here
+        self._probe = [0, 0]          # [hits, lookups] since the cache was full, until judged
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -93,26 +97,31 @@ class FrozenMapCache:
                 example = [x[b:b + 1] for x in inputs]                  # each 1×…
                 key = _digest(example)
                 cached = self._entries.get(key)
+                probing = self._full and self._probe[1] < PROBE_LOOKUPS
                 if cached is not None:
                     self._entries.move_to_end(key)
                     self.hits += 1
+                    self._probe[0] += probing
                 else:
                     self.misses += 1
                     cached = tuple(compute(example))                    # each 1×…
                     self._keep(key, cached)
+                self._probe[1] += probing
                 out.append(cached)
-        result = tuple(torch.cat(parts, dim=0) for parts in zip(*out))  # each B×…
-        lookups = self.hits + self.misses
-        if lookups >= PROBE_LOOKUPS and self.hits < MIN_HIT_RATE * lookups:
-            self.enabled = False
-            self.clear()
-        return result
+        if self._probe[1] == PROBE_LOOKUPS:
+            self._probe[1] += 1                                         # judged once
+            if self._probe[0] < MIN_HIT_RATE * PROBE_LOOKUPS:
+                self.enabled = False
+                self.clear()
+        return tuple(torch.cat(parts, dim=0) for parts in zip(*out))   # each B×…
 
     def _keep(self, key: bytes, value: tuple[torch.Tensor, ...]) -> None:
         size = sum(t.numel() * t.element_size() for t in value)
         if size > self.max_bytes:
+            self._full = True
             return
         while self._bytes + size > self.max_bytes:
+            self._full = True
             _, dropped = self._entries.popitem(last=False)
             self._bytes -= sum(t.numel() * t.element_size() for t in dropped)
         self._entries[key] = value

@@ -129,24 +129,37 @@ def test_frozen_detector_trains_through_the_cache_as_without_it(batch):
 
 
 def test_a_cache_that_mostly_misses_turns_itself_off_and_one_that_hits_stays_on():
-    """After PROBE_LOOKUPS lookups, a hit rate under MIN_HIT_RATE empties and disables the cache (every example
-    computed alone, and hashed, for nothing); its owner then computes batches directly."""
+    """Once full (its first eviction), a cache whose next PROBE_LOOKUPS lookups hit less than MIN_HIT_RATE
+    empties and disables itself (every example computed alone, and hashed, for nothing); its owner then
+    computes batches directly. The misses of filling it do not count."""
     from core.tasks.frozen_maps import MIN_HIT_RATE, PROBE_LOOKUPS
 
     module = torch.nn.Linear(2, 2)
-    double = lambda example: (example[0] * 2,)   # noqa: E731 — each example's "output"
-    missing = FrozenMapCache(max_bytes=1 << 20)
-    for i in range(PROBE_LOOKUPS // 4):             # every example new: no hits
-        assert missing.enabled
+    double = lambda example: (example[0] * 2,)   # noqa: E731 — each example's "output", 1×3 float32: 12 bytes
+    missing = FrozenMapCache(max_bytes=8 * 12)    # holds 8 outputs
+    for i in range(100):                          # every example new: no hits
         examples = (4 * i + torch.arange(4.0))[:, None].expand(4, 3)   # 4 values never seen before
         torch.testing.assert_close(missing.outputs(module, double, [examples])[0], 2 * examples)
-    assert not missing.enabled and len(missing) == 0 and missing.misses == PROBE_LOOKUPS
+        if not missing.enabled:
+            break
+    # the 9th output filled it (evicting the 1st); the probe counted the next PROBE_LOOKUPS, judged after that call
+    assert not missing.enabled and len(missing) == 0
+    assert 9 + PROBE_LOOKUPS <= missing.misses < 9 + PROBE_LOOKUPS + 4
     with pytest.raises(RuntimeError, match="turned itself off"):
         missing.outputs(module, double, [torch.zeros(1, 3)])
-    hitting = FrozenMapCache(max_bytes=1 << 20)
-    for i in range(PROBE_LOOKUPS):                  # 8 distinct examples over and over
-        hitting.outputs(module, double, [torch.full((1, 3), float(i % 8))])
-    assert hitting.enabled and hitting.hits >= MIN_HIT_RATE * (hitting.hits + hitting.misses) and len(hitting) == 8
+
+    # Full, but hitting: 9 examples drawn at random against room for 8 (~8/9 of lookups hit once full)
+    order = torch.randint(9, (4 * PROBE_LOOKUPS,), generator=torch.Generator().manual_seed(0))
+    crowded = FrozenMapCache(max_bytes=8 * 12)
+    for k in order.tolist():
+        crowded.outputs(module, double, [torch.full((1, 3), float(k))])
+    assert crowded.enabled and crowded._full and len(crowded) == 8
+    assert crowded.hits >= MIN_HIT_RATE * (crowded.hits + crowded.misses)
+    # Never full: never judged, whatever its hit rate
+    roomy = FrozenMapCache(max_bytes=1 << 20)
+    for i in range(2 * PROBE_LOOKUPS):
+        roomy.outputs(module, double, [torch.full((1, 3), float(i))])
+    assert roomy.enabled and roomy.hits == 0
 
 
 def test_flow_over_frozen_features_trains_through_the_cache_as_without_it():
