@@ -97,6 +97,19 @@ def test_the_cache_keeps_the_most_recent_maps_within_its_bytes(batch):
         FrozenMapCache(max_bytes=-1)
 
 
+def _train_losses(task, batch, *, steps: int, lr: float) -> list[float]:
+    """`steps` Adam steps of `task` on `batch` -> the losses."""
+    opt = torch.optim.Adam([p for p in task.parameters() if p.requires_grad], lr=lr)
+    losses = []
+    for _ in range(steps):
+        out = task(batch)
+        opt.zero_grad(set_to_none=True)
+        out["loss"].backward()
+        opt.step()
+        losses.append(float(out["loss"].detach()))
+    return losses
+
+
 def test_frozen_detector_trains_through_the_cache_as_without_it(batch):
     """Frozen features, training: the maps come from the cache (one mapper pass per distinct example and
     time step) and the losses equal those of the task without it; fine-tuning and eval mode never use it."""
@@ -105,14 +118,7 @@ def test_frozen_detector_trains_through_the_cache_as_without_it(batch):
         torch.manual_seed(0)
         task = build_task("detector", TINY, seed=0, frozen_map_cache_mb=mb)
         task.train()
-        opt = torch.optim.Adam([p for p in task.parameters() if p.requires_grad], lr=3e-3)
-        losses[mb] = []
-        for _ in range(4):
-            out = task(batch)
-            opt.zero_grad(set_to_none=True)
-            out["loss"].backward()
-            opt.step()
-            losses[mb].append(float(out["loss"].detach()))
+        losses[mb] = _train_losses(task, batch, steps=4, lr=3e-3)
         if mb:
             assert task.frozen_maps.hits > 0 and task.frozen_maps.misses <= 6   # 3 records × 2 time steps
         else:
@@ -181,14 +187,7 @@ def test_flow_over_frozen_features_trains_through_the_cache_as_without_it():
                                             cam_T_ref(batch, 1, 0)])
                 for got, want in zip(task.flow_inputs(batch, 0), direct):
                     torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
-            opt = torch.optim.Adam([p for p in task.parameters() if p.requires_grad], lr=1e-3)
-            losses[mb] = []
-            for _ in range(3):
-                out = task(batch)
-                opt.zero_grad(set_to_none=True)
-                out["loss"].backward()
-                opt.step()
-                losses[mb].append(float(out["loss"].detach()))
+            losses[mb] = _train_losses(task, batch, steps=3, lr=1e-3)
             if mb:
                 assert (task.frozen_inputs.misses, task.frozen_inputs.hits, len(task.frozen_inputs)) == (2, 6, 2)
                 task.eval()
