@@ -89,11 +89,11 @@ class FlowTaskConfig:
     # None (default): every view. Measured at 1 in session 6: no gain on single-view pairs (see that module).
     min_views: int | None = None
     # MiB of each training example's flow inputs (both maps or volumes, and the occupied voxels) kept across
-    # steps (core.tasks.frozen_maps; 0 = none). Why: with every view the inputs of a record are the same at
-    # every epoch, and the frozen mapper's two forwards were ~10 % of a flow-over-features step (small preset,
-    # the bench's recipe, one thread). One small-preset record's pair over features is ~17 MB, so 1536 holds
-    # the small plan's 64 training records; a cache that mostly misses turns itself off.
-    frozen_input_cache_mb: int = 1536
+    # steps of one training call (core.tasks.frozen_maps; 0 = none). Why: with every view the inputs of a record
+    # are the same at every epoch, and the frozen mapper's two forwards were ~10 % of a flow-over-features step
+    # (small preset, the bench's recipe, one thread). One small-preset record's pair over features is 8.25 MiB,
+    # so 1024 holds ~120 records (the small plan has 64); a cache that mostly misses turns itself off.
+    frozen_input_cache_mb: int = 1024
 
     def __post_init__(self) -> None:
         if self.frozen_input_cache_mb < 0:
@@ -152,22 +152,6 @@ class FlowTask(nn.Module):
         super().train(mode)
         self.mapper.eval()  # frozen features: BatchNorm keeps the loaded statistics
         return self
-
-    @torch.no_grad()
-    def stabilised_maps(self, batch: dict[str, torch.Tensor], t: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Maps of t and t+1, both in ref_t: B×F×Z×Y×X each."""
-        rgb, depth, pix = batch["rgb"], batch["depth"], batch["pix_T_cam"]
-        f0 = self.mapper(rgb[:, t], depth[:, t], pix, cam_T_ref(batch, t, t))
-        f1 = self.mapper(rgb[:, t + 1], depth[:, t + 1], pix, cam_T_ref(batch, t + 1, t))
-        return f0, f1
-
-    @torch.no_grad()
-    def stabilised_volumes(self, batch: dict[str, torch.Tensor], t: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Fused 4-channel input volumes (occupancy, RGB) of t and t+1, both in ref_t: B×4×Z×Y×X each."""
-        rgb, depth, pix = batch["rgb"], batch["depth"], batch["pix_T_cam"]
-        v0 = fused_input_volume(rgb[:, t], depth[:, t], pix, cam_T_ref(batch, t, t), self.cfg.grid)
-        v1 = fused_input_volume(rgb[:, t + 1], depth[:, t + 1], pix, cam_T_ref(batch, t + 1, t), self.cfg.grid)
-        return v0, v1
 
     @torch.no_grad()
     def flow_inputs(self, batch: dict[str, torch.Tensor], t: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -7,7 +7,8 @@ Flow over frozen features (core.tasks.flow) recomputes the same pair of maps of 
 
 Each example's outputs are computed alone (a batch of one), so their value does not depend on which examples
 share its batch or on what the cache held before: a run resumed from a checkpoint, with an empty cache, gets
-the same outputs bit for bit. The cache empties itself when any of the frozen module's tensors changed
+the same outputs bit for bit (while the cache is on; one that turned itself off computes whole batches, equal
+up to float rounding). The cache empties itself when any of the frozen module's tensors changed
 (weights loaded, a move to another device: each tensor's storage and version counter are part of the check)
 or the autocast state did; it keeps the most recently used outputs within `max_bytes`.
 
@@ -72,11 +73,15 @@ class FrozenMapCache:
 
     def _check_state(self, module: nn.Module) -> None:
         """Empty the cache when the module's tensors or the autocast state differ from the last call's."""
+        # Both devices' autocast: torch.is_autocast_enabled() without an argument reports CUDA's only, so maps
+        # kept in fp32 were returned under CPU bf16 autocast (`train --precision bf16` on a CPU).
         state = (tuple((t.data_ptr(), t._version) for t in chain(module.parameters(), module.buffers())),
-                 torch.is_autocast_enabled(), torch.get_autocast_dtype("cuda"), torch.get_autocast_dtype("cpu"))
+                 torch.is_autocast_enabled("cpu"), torch.is_autocast_enabled("cuda"),
+                 torch.get_autocast_dtype("cpu"), torch.get_autocast_dtype("cuda"))
         if state != self._state:
             self.clear()
             self._state = state
+            self._full, self._probe = False, [0, 0]   # a new module's outputs: the probe starts again
 
     def maps(self, mapper: nn.Module, rgb: torch.Tensor, depth: torch.Tensor, pix_T_cam: torch.Tensor,
              cam_T_ref: torch.Tensor) -> torch.Tensor:

@@ -77,6 +77,21 @@ def test_changed_weights_empty_the_cache(batch):
     assert torch.equal(after, want) and not torch.equal(after, before) and cache.misses == 2 and len(cache) == 1
 
 
+def test_cpu_autocast_empties_the_cache(batch):
+    """Maps kept in fp32 are not returned under CPU bf16 autocast (`train --precision bf16` on a CPU), nor the
+    reverse: the reference is the mapper run directly in each state."""
+    mapper = _mapper()
+    inputs = [x[:1] for x in _inputs(batch)]
+    cache = FrozenMapCache(max_bytes=1 << 30)
+    plain = cache.maps(mapper, *inputs)
+    with torch.autocast("cpu", dtype=torch.bfloat16), torch.no_grad():
+        want = mapper(*inputs)
+        got = cache.maps(mapper, *inputs)
+    assert torch.equal(got, want) and got.dtype == want.dtype and cache.misses == 2
+    again = cache.maps(mapper, *inputs)
+    assert torch.equal(again, plain) and again.dtype == torch.float32 and cache.misses == 3
+
+
 def test_the_cache_keeps_the_most_recent_maps_within_its_bytes(batch):
     mapper = _mapper()
     rgb, depth, K, poses = _inputs(batch)
@@ -190,9 +205,15 @@ def test_flow_over_frozen_features_trains_through_the_cache_as_without_it():
             losses[mb] = _train_losses(task, batch, steps=3, lr=1e-3)
             if mb:
                 assert (task.frozen_inputs.misses, task.frozen_inputs.hits, len(task.frozen_inputs)) == (2, 6, 2)
+                cached = task.flow_inputs(batch, 0)
+                task.frozen_inputs.enabled = False   # as after a failed probe: the batch is computed directly
+                for got, want in zip(task.flow_inputs(batch, 0), cached):
+                    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+                assert task.frozen_inputs.hits == 8   # 6 + the cached call's 2; the direct call did not look up
+                task.frozen_inputs.enabled = True
                 task.eval()
                 task.flow_inputs(batch, 0)
-                assert task.frozen_inputs.hits + task.frozen_inputs.misses == 8   # eval: not looked up
+                assert task.frozen_inputs.hits + task.frozen_inputs.misses == 10   # eval: not looked up
             else:
                 assert task.frozen_inputs is None
         torch.testing.assert_close(losses[64], losses[0], atol=1e-5, rtol=1e-5)
