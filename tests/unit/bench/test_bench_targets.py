@@ -83,3 +83,16 @@ def test_the_best_learned_row_is_chosen_by_its_mean_over_seeds_not_seed_by_seed(
     learned = _by_id(per_seed)["learned_boxes"]
     assert learned["met"] is False   # seed 2's contrastive row: 0.29 < 0.3 on the static pairs
     assert learned["per_seed"]["2"].startswith("static 0.290 vs bar 0.300")
+
+
+def test_not_finite_is_undetermined_a_limit_passes_and_the_quick_profile_is_not_judged():
+    nan_seed = _result(occ=(float("nan"), 0.97))          # a class without labels scores NaN
+    targets = _by_id({"0": _result(), "1": nan_seed, "2": _result()})
+    assert targets["occupancy"]["met"] is None and targets["occupancy"]["per_seed"]["1"] == "occupied –, free 0.970"
+    # 0.033 / 0.022 is 1.5000000000000002 in floats: at the limit, so it passes (the judge's round-off allowance)
+    at_limit = {s: _result(ego=((0.0012, 0.001), (0.033, 0.022)), flow=(1.5, 1.5, 2.0)) for s in ("0", "1", "2")}
+    assert 0.033 / 0.022 > 1.5
+    limits = _by_id(at_limit)
+    assert limits["egomotion_vs_icp_ratio"]["met"] is True and limits["flow_vs_zero_motion_ratio"]["met"] is True
+    quick = check_targets({s: _result() for s in ("0", "1", "2")}, quick=True)
+    assert all(t["met"] is None for t in quick) and all(t["per_seed"]["0"] for t in quick)
