@@ -110,8 +110,8 @@ def register(subparsers) -> None:
                    help="frames between record starts (default: T, non-overlapping)")
     t.add_argument("--intrinsics", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"), default=None,
                    help="pinhole intrinsics (default: 525 525 319.5 239.5, the camera of every TUM sequence's "
-                        "registered depth images, as the dataset's calibration page says; give the images' own "
-                        "for resized frames)")
+                        "registered depth images, as the dataset's calibration page says, for 640×480 frames; "
+                        "give the images' own for other sizes)")
     t.add_argument("--max-dt", type=positive_float, default=0.02,
                    help="largest rgb/depth/pose timestamp gap, seconds")
     _import_common(t)

@@ -41,6 +41,7 @@ from core.geometry import se3
 # is not trivial". Unprojecting with a colour calibration instead would scale points' x and y against the
 # depth sensor's own geometry: by 525/517.3 (+1.5 %, freiburg1) down to 525/539.2 (−2.6 %, freiburg3's y).
 TUM_DEPTH_CAMERA = (525.0, 525.0, 319.5, 239.5)
+TUM_IMAGE_SIZE = (480, 640)   # H, W of the frames TUM_DEPTH_CAMERA describes
 DEPTH_SCALE = 5000.0
 MAX_GAP_FACTOR = 1.5   # a step longer than this × the median step between kept frames is a gap
 
@@ -132,14 +133,18 @@ def associate(root: Path, max_dt: float) -> tuple[list[tuple[float, str, str, np
 
 
 def tum_window_to_record(root: Path, frames: list[tuple[float, str, str, np.ndarray]],
-                         pix_T_cam: np.ndarray) -> dict[str, np.ndarray]:
-    """T associated frames -> one record (V=1, K=0) with ref = the first camera."""
+                         pix_T_cam: np.ndarray, *, camera_size: tuple[int, int] | None = None) -> dict[str, np.ndarray]:
+    """T associated frames -> one record (V=1, K=0) with ref = the first camera. camera_size: (H, W) the frames
+    must have (the default camera's: a resized copy would pass the principal-point check at half size)."""
     rgb = np.stack([read_rgb(root / f[1]) for f in frames])[:, None]                        # T×1×H×W×3
     depth = np.stack([read_depth_png(root / f[2], DEPTH_SCALE) for f in frames])[:, None]  # T×1×H×W
     if rgb.shape[2:4] != depth.shape[2:4]:
         raise DataError(f"{root}: rgb {rgb.shape[2:4]} and depth {depth.shape[2:4]} sizes differ "
                         f"(frame {frames[0][1]})")
     H, W = rgb.shape[2:4]
+    if camera_size is not None and (H, W) != tuple(camera_size):
+        raise DataError(f"{root}: the frames are {W}×{H}, but TUM's camera (525, 525, 319.5, 239.5) is for "
+                        f"{camera_size[1]}×{camera_size[0]} (frame {frames[0][1]}); give the images' own --intrinsics")
     if not (0 <= pix_T_cam[0, 2] < W and 0 <= pix_T_cam[1, 2] < H):   # e.g. the full-size camera on resized frames
         raise DataError(f"{root}: the principal point ({pix_T_cam[0, 2]:g}, {pix_T_cam[1, 2]:g}) lies outside the "
                         f"{W}×{H} images (frame {frames[0][1]}); give the images' own --intrinsics")
@@ -171,7 +176,8 @@ def import_tum(src: str | os.PathLike, out_dir: str | os.PathLike, *, num_frames
     if num_frames < 1 or frame_step < 1 or (stride is not None and stride < 1):
         raise DataError("num_frames, frame_step and stride must be at least 1")
     stride = stride or num_frames
-    intrinsics = tuple(intrinsics) if intrinsics is not None else TUM_DEPTH_CAMERA
+    default_camera = intrinsics is None
+    intrinsics = TUM_DEPTH_CAMERA if default_camera else tuple(intrinsics)
     associated, counts = associate(root, max_dt)
     frames = associated[::frame_step]
     if len(frames) < num_frames:
@@ -188,7 +194,8 @@ def import_tum(src: str | os.PathLike, out_dir: str | os.PathLike, *, num_frames
 
     def records() -> Iterator[dict]:
         for start in starts:
-            rec = tum_window_to_record(root, frames[start:start + num_frames], pix_T_cam)
+            rec = tum_window_to_record(root, frames[start:start + num_frames], pix_T_cam,
+                                       camera_size=TUM_IMAGE_SIZE if default_camera else None)
             rec["__key__"] = f"{sequence}-{start:06d}"
             yield rec
 

@@ -97,15 +97,42 @@ def test_tum_counts_what_it_skips_and_refuses_what_it_cannot_read(tmp_path, tum_
     manifest = import_tum(root, tmp_path / "out", num_frames=2, intrinsics=(3.0, 3.5, 2.5, 1.5))
     g = manifest["generator"]
     assert (g["rgb_frames"], g["dropped_no_depth"], g["dropped_no_pose"], g["windows_skipped_for_gaps"]) == (3, 1, 0, 0)
-    # the default camera is the full-size 640×480 one: its principal point lies outside these 6×4 images
-    with pytest.raises(DataError, match=r"principal point \(319.5, 239.5\) lies outside the 6×4 images"):
+    # the default camera is the full-size 640×480 one: these 6×4 images need their own
+    with pytest.raises(DataError, match=r"the frames are 6×4, but TUM's camera .* is for 640×480 .*--intrinsics"):
         import_tum(root, tmp_path / "out2")
+    # and a camera given for other frames is caught by its principal point
+    with pytest.raises(DataError, match=r"principal point \(319.5, 239.5\) lies outside the 6×4 images"):
+        import_tum(root, tmp_path / "out2", intrinsics=(525.0, 525.0, 319.5, 239.5))
     renamed = root.rename(root.with_name("my_sequence"))
     # an 8-bit depth image would read as depths of at most 5 cm: refused, naming the file
     depth_file = renamed / "depth" / "1.005000.png"
     Image.fromarray(np.full((4, 6), 200, np.uint8)).save(depth_file)
     with pytest.raises(DataError, match=r"1.005000.png: depth must be a single-channel 16-bit PNG, got uint8"):
         import_tum(renamed, tmp_path / "out4", intrinsics=(3.0, 3.5, 2.5, 1.5))
+
+
+def _tum_sequence(root, H: int, W: int):
+    """Two H×W frames, still camera, depth 0.2–4 m: a TUM sequence directory at `root`."""
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    rng = np.random.default_rng(1)
+    for t in ("1.000000", "1.100000"):
+        Image.fromarray(np.zeros((H, W, 3), np.uint8)).save(root / "rgb" / f"{t}.png")
+        Image.fromarray(rng.integers(1000, 20000, (H, W), dtype=np.uint16)).save(root / "depth" / f"{t}.png")
+    (root / "rgb.txt").write_text("1.000000 rgb/1.000000.png\n1.100000 rgb/1.100000.png\n")
+    (root / "depth.txt").write_text("1.000000 depth/1.000000.png\n1.100000 depth/1.100000.png\n")
+    (root / "groundtruth.txt").write_text("1.000 0 0 0 0 0 0 1\n1.100 0 0 0 0 0 0 1\n")
+    return root
+
+
+def test_half_size_frames_need_their_own_camera(tmp_path):
+    """A 320×240 copy passes the principal-point check with the full-size camera (319.5 < 320, 239.5 < 240),
+    so the default camera checks the frames' size; the scaled camera imports them."""
+    root = _tum_sequence(tmp_path / "half", 240, 320)
+    with pytest.raises(DataError, match=r"the frames are 320×240, but TUM's camera .* is for 640×480"):
+        import_tum(root, tmp_path / "out", num_frames=2)
+    manifest = import_tum(root, tmp_path / "out", num_frames=2, intrinsics=(262.5, 262.5, 159.5, 119.5))
+    assert manifest["generator"]["intrinsics"] == [262.5, 262.5, 159.5, 119.5]
 
 
 def test_a_full_size_frame_of_any_sequence_unprojects_as_the_tum_page_says(tmp_path):
@@ -116,16 +143,7 @@ def test_a_full_size_frame_of_any_sequence_unprojects_as_the_tum_page_says(tmp_p
 
     from core.geometry.camera import depth_to_points
 
-    root = tmp_path / "rgbd_dataset_freiburg3_anything"
-    (root / "rgb").mkdir(parents=True)
-    (root / "depth").mkdir()
-    rng = np.random.default_rng(1)
-    for t in ("1.000000", "1.100000"):
-        Image.fromarray(np.zeros((480, 640, 3), np.uint8)).save(root / "rgb" / f"{t}.png")
-        Image.fromarray(rng.integers(1000, 20000, (480, 640), dtype=np.uint16)).save(root / "depth" / f"{t}.png")
-    (root / "rgb.txt").write_text("1.000000 rgb/1.000000.png\n1.100000 rgb/1.100000.png\n")
-    (root / "depth.txt").write_text("1.000000 depth/1.000000.png\n1.100000 depth/1.100000.png\n")
-    (root / "groundtruth.txt").write_text("1.000 0 0 0 0 0 0 1\n1.100 0 0 0 0 0 0 1\n")
+    root = _tum_sequence(tmp_path / "rgbd_dataset_freiburg3_anything", 480, 640)
     manifest = import_tum(root, tmp_path / "out", num_frames=2)
     assert manifest["generator"]["intrinsics"] == [525.0, 525.0, 319.5, 239.5]
     rec, _ = _only_record(tmp_path / "out")
