@@ -196,10 +196,11 @@ def _walk(work: Path, directory: Path) -> Iterator[str]:
 
 def _resumed_checkpoint(root: Path) -> Path | None:
     """The checkpoint the in-process loop resumes from: its own store's newest complete `checkpoint_<step>`
-    (never a `.staging_*` folder that a kill left behind, whatever step it holds)."""
-    from services.training.checkpoints import LocalCheckpointStore
+    (never a `.staging_*` folder that a kill left behind, whatever step it holds, nor a newer one cut short,
+    which the loop would skip: carrying that one alone left no checkpoint to resume from)."""
+    from services.training.checkpoints import newest_complete_checkpoint
 
-    return LocalCheckpointStore(root, keep=1).latest()
+    return newest_complete_checkpoint(root)
 
 
 def newest_checkpoint_anywhere(root: Path) -> Path | None:

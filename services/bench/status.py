@@ -42,7 +42,7 @@ def bench_status(out_dir: str | Path) -> dict:
     from services.bench.carry import newest_checkpoint_anywhere
     from services.bench.plan import BenchConfig
     from services.bench.replan import _dry_run
-    from services.training.checkpoints import LocalCheckpointStore, read_checkpoint_state
+    from services.training.checkpoints import newest_complete_checkpoint, read_checkpoint_state
 
     work = Path(out_dir) / "work"
     try:
@@ -63,12 +63,17 @@ def bench_status(out_dir: str | Path) -> dict:
             row["state"] = "under way"
             row["seconds"] = _seconds(stage_dir / PARTIAL)
             if marker_of(name) == TRAIN_MARKER:
-                latest = (LocalCheckpointStore(stage_dir / "checkpoints", keep=1).latest()
+                # the checkpoint a resume would use: the newest complete one (a torn newer one is skipped)
+                latest = (newest_complete_checkpoint(stage_dir / "checkpoints")
                           or newest_checkpoint_anywhere(stage_dir / "ray_train"))   # a stage on Ray Train
                 row["step"] = read_checkpoint_state(latest).step if latest is not None else 0
                 rule = RULE_OF_PREFIX.get(name.split("/")[-1].split("_")[0])
-                row["max_steps"] = getattr(config.rules, rule).max_steps if rule else None
                 row["logged"] = last_logged(stage_dir / "metrics.jsonl")
+                if rule and getattr(config.rules, rule).kind == "epochs":
+                    # its bound is its epochs' steps within [min, max], which the training call logs as its total
+                    row["max_steps"] = row["logged"]["total_steps"] if row["logged"] else None
+                else:
+                    row["max_steps"] = getattr(config.rules, rule).max_steps if rule else None
         rows.append(row)
     counts = {state: sum(r["state"] == state for r in rows) for state in ("finished", "under way", "to run")}
     return {"plan": {"preset": config.preset, "seeds": list(config.seeds)}, "stages": rows, "counts": counts}

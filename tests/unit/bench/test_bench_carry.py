@@ -13,6 +13,7 @@ from services.bench.carry import CARRY_MANIFEST, CarryError, carried_files, rest
 from services.bench.paper import _data_stages
 from services.bench.plan import plan_for
 from services.bench.stages import StageRunner
+from tests.bench_checkpoints import write_checkpoint
 
 
 def _write(path: Path, text: str = "x") -> None:
@@ -21,11 +22,7 @@ def _write(path: Path, text: str = "x") -> None:
 
 
 def _checkpoint(root: Path, step: int, *, complete: bool = True) -> None:
-    d = root / f"checkpoint_{step:08d}"
-    _write(d / "task.safetensors", f"weights at {step}")
-    _write(d / "optimizer.pt", f"optimizer at {step}")
-    if complete:
-        _write(d / "state.json", json.dumps({"step": step, "config": {}, "metrics": {}}))
+    write_checkpoint(root, step, torn=None if complete else "state")
 
 
 def _work_dir(work: Path) -> None:
@@ -51,6 +48,9 @@ def _work_dir(work: Path) -> None:
     _checkpoint(going / "checkpoints", 100)
     _checkpoint(going / "checkpoints", 200)
     _checkpoint(going / "checkpoints", 300, complete=False)   # cut off while written
+    # newer still, its state.json whole but its weights cut short: the loop would skip it for 200, so the carry
+    # must too (it carried this one alone, and the restored stage then had nothing to resume from)
+    write_checkpoint(going / "checkpoints", 350, torn="weights")
     staged = going / "checkpoints" / ".staging_400_x1y2"          # written whole, then killed before its rename
     _write(staged / "state.json", json.dumps({"step": 400, "config": {}, "metrics": {}}))
     _write(staged / "task.safetensors", "weights at 400")

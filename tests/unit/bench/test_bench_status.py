@@ -11,6 +11,7 @@ import pytest
 from services.bench.plan import plan_for, with_steps
 from services.bench.replan import stage_digests
 from services.bench.status import bench_status, format_status
+from tests.bench_checkpoints import write_checkpoint
 
 
 def _write(path: Path, value) -> None:
@@ -25,7 +26,7 @@ def _config():
 
 
 def _checkpoint(root: Path, step: int) -> None:
-    _write(root / f"checkpoint_{step:08d}" / "state.json", {"step": step, "config": {}})
+    write_checkpoint(root, step)
 
 
 @pytest.fixture
@@ -42,7 +43,8 @@ def out(tmp_path) -> Path:
     going = s0 / "pretrain_contrastive"
     _write(going / "stage.partial.json", {"seconds": 40.0})
     for step in (1, 2):
-        _write(going / "checkpoints" / f"checkpoint_{step:08d}" / "state.json", {"step": step, "config": {}})
+        write_checkpoint(going / "checkpoints", step)
+    write_checkpoint(going / "checkpoints", 3, torn="weights")   # cut short: a resume uses step 2
     _write(going / "checkpoints" / ".staging_9_x" / "state.json", {"step": 9, "config": {}})  # never resumed from
     import time
     _write(going / "metrics.jsonl", 'p": 1, "cut off"}\n'   # a tail's first line, cut
@@ -93,6 +95,24 @@ def test_the_summary_says_per_seed_what_is_under_way_and_what_runs_next(out):
     assert "logged" not in lines[3]   # no progress line written: nothing said
     assert "under way: eval/flow/volume, 2 s in stopped attempts" in lines[3] and "next to run: pretrain_regression" in lines[3]
     assert "under way: flow_volume at step 5 (its rule stops by 13)" in lines[3]
+
+
+def test_a_detector_under_an_epochs_rule_is_bounded_by_its_epochs_not_the_rules_cap(tmp_path):
+    """The epochs rule stops at its epochs' steps within [min, max] (the training call logs them as its total),
+    not at max_steps: '(its rule stops by 2000)' beside 'logged step 100 of 800' was the old line."""
+    import time
+
+    config = plan_for("tiny", seeds=(0,))
+    assert config.rules.detector.kind == "epochs"
+    work = tmp_path / "report" / "work"
+    _write(work / "plan.json", config.to_dict())
+    going = work / "seed0" / "detector_random_finetuned_L2"
+    write_checkpoint(going / "checkpoints", 20)
+    _write(going / "metrics.jsonl", json.dumps({"step": 25, "total_steps": 80, "time": time.time(), "start_step": 0,
+                                                "steps_per_s": 1.0}) + "\n")
+    row = next(r for r in bench_status(tmp_path / "report")["stages"] if r["name"] == "seed0/detector_random_finetuned_L2")
+    assert (row["state"], row["step"], row["max_steps"]) == ("under way", 20, 80)
+    assert config.rules.detector.max_steps != 80
 
 
 def test_no_benchmark_is_one_line_exit_2(tmp_path, capsys):
