@@ -100,6 +100,10 @@ class TrainSession(Protocol):
     world_size: int
     device: torch.device
     progress_stream: object  # where rank 0 prints progress lines (None: only metrics.jsonl)
+    # Whether epoch_batches can start part way into an epoch (`skip`): then every checkpoint before the last
+    # step saves where the data stream stood, so a resume from it after a kill (no signal, no final save)
+    # trains on the same batches as the run would have. Ray Train's streamed shards cannot skip.
+    skips_into_epochs: bool
 
     def epoch_batches(self, epoch: int, skip: int = 0):
         """Yield lists of `batch_size` records (dicts of numpy arrays) for this worker's share, from the
@@ -281,7 +285,11 @@ def train_loop(config: TrainJobConfig, session: TrainSession, spec: TaskSpec = C
                 logger.log(step, values)
             _maybe_inject_fault(config, session, step)
             if step % config.checkpoint_every == 0 or step == config.steps:
-                _report_checkpoint(config, session, task, optimizer, step, values, average)
+                # The last step's checkpoint keeps none: a run trained in chunks (the benchmark's plateau rule)
+                # starts each chunk at an epoch of its own (above), as it always has.
+                position = ((epoch, batches_this_epoch) if session.skips_into_epochs and step < config.steps
+                            else None)
+                _report_checkpoint(config, session, task, optimizer, step, values, average, data_position=position)
                 saved_step = step
             if step >= config.steps:
                 break

@@ -31,6 +31,7 @@ class LocalSession:
 
     rank = 0
     world_size = 1
+    skips_into_epochs = True   # its shuffled epochs are plain index lists (epoch_batches' skip)
 
     @property
     def progress_stream(self):
@@ -77,6 +78,8 @@ class LocalSession:
 
 class RaySession:
     """A Ray Train worker: dataset shard from `get_dataset_shard`, checkpoints through `report`."""
+
+    skips_into_epochs = False   # a streamed shard with a local shuffle buffer has no index to start from
 
     def __init__(self, config: TrainJobConfig) -> None:
         import ray.train

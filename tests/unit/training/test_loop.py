@@ -226,6 +226,45 @@ def test_a_run_stopped_by_a_signal_and_resumed_trains_as_one_never_stopped(tmp_p
         assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), name
 
 
+@pytest.mark.parametrize("killed_at", [7, 9, 13])
+def test_a_run_killed_without_a_word_resumes_from_its_last_checkpoint_on_the_same_batches(tmp_path, killed_at):
+    """A kill (SIGKILL, out of memory, a lost machine) leaves no signal checkpoint: the rerun resumes from the
+    last periodic one, which saved where the data stream stood, so the weights after 20 steps are bit for bit
+    an uninterrupted run's (they were not: a resume there started an epoch of its own, other batches)."""
+    import torch
+    from safetensors.torch import load_file
+
+    class Killed(Exception):
+        pass
+
+    def kill_at(step_count: int):
+        calls = []
+
+        def stop_requested():
+            calls.append(1)
+            if len(calls) >= step_count:
+                raise Killed   # mid-run, after the step: nothing saved beyond the periodic checkpoints
+            return None
+        return stop_requested
+
+    records = toy_records(32)
+    whole = _config(tmp_path / "whole", steps=20, checkpoint_every=5, ema_decay=0.9)
+    _run(whole, records)
+    cut = _config(tmp_path / "cut", steps=20, checkpoint_every=5, ema_decay=0.9)
+    with pytest.raises(Killed):
+        train_loop(cut, LocalSession(cut, dataset=records), toy_spec(), stop_requested=kill_at(killed_at))
+    store = LocalSession(cut, dataset=[]).store
+    last = read_checkpoint_state(store.latest())
+    assert last.step == killed_at // 5 * 5 and last.data_position == divmod(last.step, 8)   # 8 batches an epoch
+    again = _run(cut, records)
+    assert again.start_step == last.step and again.step == 20
+    ends = [LocalSession(c, dataset=[]).store.latest() for c in (whole, cut)]
+    assert read_checkpoint_state(ends[1]).data_position is None   # the last step's checkpoint keeps none
+    for name in ("task.safetensors", "average.safetensors"):
+        a, b = (load_file(str(d / name)) for d in ends)
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), name
+
+
 def test_a_stop_request_at_the_first_step_saves_it_and_at_the_last_step_the_run_just_finishes(tmp_path):
     config = _config(tmp_path, steps=6, checkpoint_every=5)
     outcome = train_loop(config, LocalSession(config, dataset=toy_records(32)), toy_spec(),
