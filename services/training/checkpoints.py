@@ -191,8 +191,10 @@ def newest_complete_checkpoint(root: str | Path) -> Path | None:
 
 
 def is_complete(checkpoint: Path) -> bool:
-    """Whether a checkpoint dir has its three files, a readable state.json and a weights file that opens: a copy
-    cut short (Ray copies each checkpoint into its storage; a dying worker or node stops it part way) is not."""
+    """Whether a checkpoint dir has its three files, a readable state.json and a weights file that opens (and,
+    for a run that keeps a weight average, an average file that opens): a copy cut short (Ray copies each
+    checkpoint into its storage; a dying worker or node stops it part way) is not. Why the average too: a torn
+    one passed, and every resume then failed loading it instead of falling back to the checkpoint before."""
     from safetensors import safe_open
 
     if not all((checkpoint / name).is_file() for name in (TASK_FILE, OPTIMIZER_FILE, STATE_FILE)):
@@ -200,10 +202,12 @@ def is_complete(checkpoint: Path) -> bool:
     if not zipfile.is_zipfile(checkpoint / OPTIMIZER_FILE):   # torch.save's zip: a copy cut short has no directory
         return False
     try:
-        read_checkpoint_state(checkpoint)
-        with safe_open(str(checkpoint / TASK_FILE), framework="pt"):
-            pass
-    except Exception:  # CheckpointError, or safetensors' own types for truncated files
+        state = read_checkpoint_state(checkpoint)
+        weights = [TASK_FILE] + ([AVERAGE_FILE] if float(state.config.get("ema_decay") or 0.0) > 0 else [])
+        for name in weights:
+            with safe_open(str(checkpoint / name), framework="pt"):
+                pass
+    except Exception:  # CheckpointError, a missing average, or safetensors' own types for truncated files
         return False
     return True
 

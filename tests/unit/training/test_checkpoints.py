@@ -96,6 +96,27 @@ def test_newest_complete_checkpoint_passes_over_a_copy_cut_short(tmp_path):
     assert newest_complete_checkpoint(tmp_path / "absent") is None
 
 
+def test_a_run_with_a_weight_average_needs_its_average_whole(tmp_path):
+    """ema_decay > 0: a checkpoint whose average file is missing or cut short is not complete (every resume
+    failed on it instead of falling back); a run without an average needs none."""
+    from services.training.checkpoints import is_complete
+    from services.training.weight_average import WeightAverage
+
+    task, opt = _trained_task_and_optimizer()
+    average = WeightAverage(task, decay=0.9)
+    for step in (2, 4, 6):
+        save_checkpoint(tmp_path / checkpoint_dir_name(step), task=task, optimizer=opt, step=step,
+                        config={"ema_decay": 0.9}, metrics={}, average=average)
+    assert all(is_complete(tmp_path / checkpoint_dir_name(step)) for step in (2, 4, 6))
+    cut = tmp_path / checkpoint_dir_name(6) / "average.safetensors"
+    cut.write_bytes(cut.read_bytes()[:20])
+    (tmp_path / checkpoint_dir_name(4) / "average.safetensors").unlink()
+    assert read_checkpoint_state(newest_complete_checkpoint(tmp_path)).step == 2
+    plain = tmp_path / "plain" / checkpoint_dir_name(2)
+    save_checkpoint(plain, task=task, optimizer=opt, step=2, config={"ema_decay": 0.0}, metrics={})
+    assert is_complete(plain)
+
+
 def _staged(root, task, opt, step: int):
     import tempfile
     from pathlib import Path
