@@ -23,13 +23,29 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
+from core.errors import N3dmapError
+
+
+class StageError(N3dmapError):
+    """A stage's files say something that cannot be (a marker that does not parse)."""
+
 
 def write_json(path: Path, value) -> None:
-    """Write JSON atomically (temporary name, then rename): a reader never sees half a file."""
+    """Write JSON atomically and durably (temporary name, flushed to disk, then renamed, and the rename flushed):
+    a reader never sees half a file, and a power loss after the call cannot leave an empty one behind the name
+    (a stage marker that survived empty would say "finished" of a stage with nothing in it)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(value, indent=2, sort_keys=True) + "\n")
+    with open(tmp, "w") as f:
+        f.write(json.dumps(value, indent=2, sort_keys=True) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
     os.replace(tmp, path)
+    folder = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(folder)
+    finally:
+        os.close(folder)
 
 
 @dataclass
@@ -85,6 +101,11 @@ class StageRunner:
         done = stage_dir / marker
         info_path = stage_dir / "stage.json"
         if done.exists():
+            try:
+                json.loads(done.read_text())
+            except (ValueError, UnicodeDecodeError):
+                raise StageError(f"stage {name}: its marker {done} is not readable JSON (cut short by a crash?); "
+                                 f"rerun with --redo {name} to run it and what reads it again") from None
             seconds = _read_seconds(info_path)
             self.seconds[name] = seconds
             self.code[name] = _read_code(info_path)

@@ -111,3 +111,19 @@ def test_an_attempt_killed_outright_still_names_its_commit(tmp_path):
     resumed.commit = None                  # e.g. run from an unpacked copy, not a git checkout
     resumed.run("s", "done", _done)
     assert resumed.code["s"] == ["c" * 40, "?"]
+
+
+def test_a_marker_that_does_not_parse_is_refused_naming_the_redo(tmp_path):
+    """A marker left empty (a crash between a rename and the disk) said "finished" of a stage with nothing in it,
+    and what read the stage then failed with a traceback; now the stage is refused by name, with the fix."""
+    import pytest
+
+    from services.bench.stages import StageError
+
+    work = tmp_path / "work"
+    StageRunner(work, log=lambda line: None).run("seed0/a", "done", _done)
+    (work / "seed0" / "a" / "done").write_text("")
+    ran = []
+    with pytest.raises(StageError, match=r"stage seed0/a: its marker .*done is not readable JSON.*--redo seed0/a"):
+        StageRunner(work, log=lambda line: None).run("seed0/a", "done", lambda d: ran.append(d))
+    assert ran == []
