@@ -106,6 +106,12 @@ class StageRunner:
             except (ValueError, UnicodeDecodeError):
                 raise StageError(f"stage {name}: its marker {done} is not readable JSON (cut short by a crash?); "
                                  f"rerun with --redo {name} to run it and what reads it again") from None
+            partial = stage_dir / PARTIAL
+            if not info_path.exists() and partial.exists():
+                # stopped between its marker and its record (a signal in that window): the attempts' time and
+                # commits are in PARTIAL, so the record is written from it rather than left a NaN forever
+                write_json(info_path, {"stage": name, "seconds": _read_seconds(partial), "code": _read_code(partial)})
+                partial.unlink()
             seconds = _read_seconds(info_path)
             self.seconds[name] = seconds
             self.code[name] = _read_code(info_path)

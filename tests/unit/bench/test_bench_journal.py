@@ -127,3 +127,29 @@ def test_a_marker_that_does_not_parse_is_refused_naming_the_redo(tmp_path):
     with pytest.raises(StageError, match=r"stage seed0/a: its marker .*done is not readable JSON.*--redo seed0/a"):
         StageRunner(work, log=lambda line: None).run("seed0/a", "done", lambda d: ran.append(d))
     assert ran == []
+
+
+def test_a_stage_stopped_between_its_marker_and_its_record_is_recorded_from_its_attempts(tmp_path):
+    """A signal after the marker but before stage.json left the stage done with no time (NaN in every later
+    report): the next run writes stage.json from the attempts' record."""
+    from services.bench.stages import PARTIAL
+
+    work = tmp_path / "work"
+    stage = work / "seed0" / "a"
+
+    def marker_then_stop(stage_dir):
+        _done(stage_dir)
+        raise KeyboardInterrupt   # the signal lands after the marker is written
+
+    runner = StageRunner(work, log=lambda line: None)
+    runner.commit = "c" * 40
+    try:
+        runner.run("seed0/a", "done", marker_then_stop)
+    except KeyboardInterrupt:
+        pass
+    assert (stage / "done").exists() and not (stage / "stage.json").exists() and (stage / PARTIAL).exists()
+    later = StageRunner(work, log=lambda line: None)
+    later.run("seed0/a", "done", _done)
+    record = json.loads((stage / "stage.json").read_text())
+    assert record["seconds"] >= 0 and record["code"] == ["c" * 40] and not (stage / PARTIAL).exists()
+    assert later.seconds["seed0/a"] == record["seconds"]
