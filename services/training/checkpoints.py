@@ -166,7 +166,11 @@ class LocalCheckpointStore:
             shutil.rmtree(leftover, ignore_errors=True)
         final = self.root / checkpoint_dir_name(step)
         replaced = self._retire(final) if final.exists() else None
+        # On disk before the rename makes it the newest, and the rename on disk before older ones are deleted:
+        # after a power loss the newest name holds whole files, or the older checkpoints are still there.
+        _fsync_tree(staged)
         os.replace(staged, final)
+        _fsync_path(self.root)
         retired = [self._retire(old) for old in self.list()[:-self.keep]]
         for path in [replaced, *retired]:
             if path is not None:
@@ -180,6 +184,23 @@ class LocalCheckpointStore:
             shutil.rmtree(retired)
         os.replace(checkpoint, retired)
         return retired
+
+
+def _fsync_path(path: Path) -> None:
+    """Flush a file's or a folder's contents (a folder: its entries, i.e. renames into it) to disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_tree(folder: Path) -> None:
+    """Flush every file directly in `folder`, then the folder itself."""
+    for path in folder.iterdir():
+        if path.is_file():
+            _fsync_path(path)
+    _fsync_path(folder)
 
 
 def newest_complete_checkpoint(root: str | Path) -> Path | None:

@@ -185,3 +185,26 @@ def test_the_driver_passes_over_checkpoints_cut_short(tmp_path):
     optimizer = ray_root / checkpoint_dir_name(3) / "optimizer.pt"   # a copy cut short inside the optimizer file
     optimizer.write_bytes(optimizer.read_bytes()[:100])
     assert latest_checkpoint_dir(config) is None and newest_complete_checkpoint(ray_root) is None
+
+
+def test_commit_flushes_the_checkpoint_to_disk_before_it_becomes_the_newest(tmp_path, monkeypatch):
+    """Every file of the staged checkpoint and its folder are fsynced before the rename that makes it the newest,
+    and the store's folder after it (before older checkpoints are deleted): a power loss cannot leave the newest
+    name over empty files while the older ones are gone."""
+    import os
+
+    task, opt = _trained_task_and_optimizer()
+    store = LocalCheckpointStore(tmp_path / "ckpts", keep=1)
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(os, "fsync", lambda fd: (events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}"))),
+                                                 real_fsync(fd))[1])
+    monkeypatch.setattr(os, "replace", lambda a, b: (events.append(("replace", str(a), str(b))), real_replace(a, b))[1])
+    staged = tmp_path / "staged"
+    save_checkpoint(staged, task=task, optimizer=opt, step=5, config={}, metrics={})
+    final = store.commit(staged, 5)
+    rename = next(i for i, e in enumerate(events) if e[0] == "replace" and e[2] == str(final))
+    flushed = {e[1] for e in events[:rename] if e[0] == "fsync"}
+    files = {str(staged / p.name) for p in final.iterdir()}   # their names when flushed, before the rename
+    assert len(files) == 3 and files <= flushed and str(staged) in flushed
+    assert ("fsync", str(store.root)) in events[rename:]
