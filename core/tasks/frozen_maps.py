@@ -41,6 +41,10 @@ def _digest(tensors: list[torch.Tensor]) -> bytes:
     return h.digest()
 
 
+def _nbytes(tensors: tuple[torch.Tensor, ...]) -> int:
+    return sum(t.numel() * t.element_size() for t in tensors)
+
+
 PROBE_LOOKUPS = 256   # lookups, once the cache is full, whose hit rate is judged
 MIN_HIT_RATE = 0.5    # below it the cache turns itself off
 
@@ -121,13 +125,13 @@ class FrozenMapCache:
         return tuple(torch.cat(parts, dim=0) for parts in zip(*out))   # each B×…
 
     def _keep(self, key: bytes, value: tuple[torch.Tensor, ...]) -> None:
-        size = sum(t.numel() * t.element_size() for t in value)
+        size = _nbytes(value)
         if size > self.max_bytes:
             self._full = True
             return
         while self._bytes + size > self.max_bytes:
             self._full = True
             _, dropped = self._entries.popitem(last=False)
-            self._bytes -= sum(t.numel() * t.element_size() for t in dropped)
+            self._bytes -= _nbytes(dropped)
         self._entries[key] = value
         self._bytes += size

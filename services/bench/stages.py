@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Callable, Mapping, Sequence
 
 from core.errors import N3dmapError
+from services.durable import fsync_path
 
 
 class StageError(N3dmapError):
@@ -41,11 +42,7 @@ def write_json(path: Path, value) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
-    folder = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(folder)
-    finally:
-        os.close(folder)
+    fsync_path(path.parent)
 
 
 @dataclass
@@ -100,18 +97,19 @@ class StageRunner:
             return stage_dir
         done = stage_dir / marker
         info_path = stage_dir / "stage.json"
+        partial_path = stage_dir / PARTIAL
         if done.exists():
             try:
                 json.loads(done.read_text())
             except (ValueError, UnicodeDecodeError):
                 raise StageError(f"stage {name}: its marker {done} is not readable JSON (cut short by a crash?); "
                                  f"rerun with --redo {name} to run it and what reads it again") from None
-            partial = stage_dir / PARTIAL
-            if not info_path.exists() and partial.exists():
+            if not info_path.exists() and partial_path.exists():
                 # stopped between its marker and its record (a signal in that window): the attempts' time and
                 # commits are in PARTIAL, so the record is written from it rather than left a NaN forever
-                write_json(info_path, {"stage": name, "seconds": _read_seconds(partial), "code": _read_code(partial)})
-                partial.unlink()
+                write_json(info_path, {"stage": name, "seconds": _read_seconds(partial_path),
+                                       "code": _read_code(partial_path)})
+                partial_path.unlink()
             seconds = _read_seconds(info_path)
             self.seconds[name] = seconds
             self.code[name] = _read_code(info_path)
@@ -122,7 +120,6 @@ class StageRunner:
         # A stage stopped part-way (Ctrl-C, SIGTERM, an error) keeps the time it ran in PARTIAL, and its
         # resume adds it: the report's stage times are whole stages, not their last attempts. (A process
         # killed outright writes nothing, so its attempt goes uncounted.)
-        partial_path = stage_dir / PARTIAL
         earlier = _read_seconds(partial_path) if partial_path.exists() else 0.0
         code = _read_code(partial_path) if partial_path.exists() else []
         this = self.commit or UNRECORDED   # not a git checkout: unknown, said as such

@@ -67,13 +67,14 @@ def bench_status(out_dir: str | Path) -> dict:
                 latest = (newest_complete_checkpoint(stage_dir / "checkpoints")
                           or newest_checkpoint_anywhere(stage_dir / "ray_train"))   # a stage on Ray Train
                 row["step"] = read_checkpoint_state(latest).step if latest is not None else 0
-                rule = RULE_OF_PREFIX.get(name.split("/")[-1].split("_")[0])
+                rule_name = RULE_OF_PREFIX.get(name.split("/")[-1].split("_")[0])
+                rule = getattr(config.rules, rule_name) if rule_name else None
                 row["logged"] = last_logged(stage_dir / "metrics.jsonl")
-                if rule and getattr(config.rules, rule).kind == "epochs":
+                if rule is not None and rule.kind == "epochs":
                     # its bound is its epochs' steps within [min, max], which the training call logs as its total
                     row["max_steps"] = row["logged"]["total_steps"] if row["logged"] else None
                 else:
-                    row["max_steps"] = getattr(config.rules, rule).max_steps if rule else None
+                    row["max_steps"] = rule.max_steps if rule is not None else None
         rows.append(row)
     counts = {state: sum(r["state"] == state for r in rows) for state in ("finished", "under way", "to run")}
     return {"plan": {"preset": config.preset, "seeds": list(config.seeds)}, "stages": rows, "counts": counts}

@@ -22,11 +22,9 @@ by seed, which would pick each seed's luckiest row).
 
 from __future__ import annotations
 
-import math
-
 from services.bench import aggregate as agg
 from services.bench.claims import EGO_RATIO, OCCUPANCY_TARGET as OCCUPANCY
-from services.bench.judge import MIN_SEEDS, ROUNDING
+from services.bench.judge import MIN_SEEDS, ROUNDING, _finite
 from services.bench.plan import OCCUPANCY_MODULE
 
 FLOW_RATIO = 0.75
@@ -41,11 +39,9 @@ EGOMOTION_SUFFIX = ", egomotion module"
 
 
 def _number(d, *path) -> float | None:
-    """The finite number at `path`, else None (missing, not a number, NaN or infinite: as the judge's)."""
+    """The finite number at `path`, else None (missing, not a number, NaN or infinite: the judge's test)."""
     value = agg.get_path(d, *path)
-    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
-        return float(value)
-    return None
+    return float(value) if _finite(value) else None
 
 
 def _at_most(x: float, limit: float) -> bool:

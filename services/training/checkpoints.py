@@ -25,6 +25,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from core.errors import N3dmapError
+from services.durable import fsync_path
 from services.training.weight_average import WeightAverage
 
 TASK_FILE = "task.safetensors"
@@ -170,7 +171,7 @@ class LocalCheckpointStore:
         # after a power loss the newest name holds whole files, or the older checkpoints are still there.
         _fsync_tree(staged)
         os.replace(staged, final)
-        _fsync_path(self.root)
+        fsync_path(self.root)
         retired = [self._retire(old) for old in self.list()[:-self.keep]]
         for path in [replaced, *retired]:
             if path is not None:
@@ -186,21 +187,12 @@ class LocalCheckpointStore:
         return retired
 
 
-def _fsync_path(path: Path) -> None:
-    """Flush a file's or a folder's contents (a folder: its entries, i.e. renames into it) to disk."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _fsync_tree(folder: Path) -> None:
     """Flush every file directly in `folder`, then the folder itself."""
     for path in folder.iterdir():
         if path.is_file():
-            _fsync_path(path)
-    _fsync_path(folder)
+            fsync_path(path)
+    fsync_path(folder)
 
 
 def newest_complete_checkpoint(root: str | Path) -> Path | None:

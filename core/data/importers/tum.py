@@ -143,7 +143,7 @@ def tum_window_to_record(root: Path, frames: list[tuple[float, str, str, np.ndar
                         f"(frame {frames[0][1]})")
     H, W = rgb.shape[2:4]
     if camera_size is not None and (H, W) != tuple(camera_size):
-        raise DataError(f"{root}: the frames are {W}×{H}, but TUM's camera (525, 525, 319.5, 239.5) is for "
+        raise DataError(f"{root}: the frames are {W}×{H}, but TUM's camera {TUM_DEPTH_CAMERA} is for "
                         f"{camera_size[1]}×{camera_size[0]} (frame {frames[0][1]}); give the images' own --intrinsics")
     if not (0 <= pix_T_cam[0, 2] < W and 0 <= pix_T_cam[1, 2] < H):   # e.g. the full-size camera on resized frames
         raise DataError(f"{root}: the principal point ({pix_T_cam[0, 2]:g}, {pix_T_cam[1, 2]:g}) lies outside the "

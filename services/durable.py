@@ -1,0 +1,21 @@
+"""Flushing to disk what a rename is about to make official (stage markers, training checkpoints).
+
+Why: a rename is atomic for readers, but after a power loss the new name can survive over file contents that
+never reached the disk — an empty stage marker that says "finished", or the newest checkpoint over empty files
+while the older ones were already deleted. Flushing the files before the rename, and the folder after it, closes
+that window.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def fsync_path(path: str | os.PathLike) -> None:
+    """Flush a file's or a folder's contents (a folder: its entries, i.e. renames into it) to disk."""
+    fd = os.open(Path(path), os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
