@@ -1,4 +1,5 @@
-"""Flushing to disk what a rename is about to make official (stage markers, training checkpoints).
+"""Flushing to disk what a rename is about to make official (stage markers, training checkpoints, a stage's
+selected bundle).
 
 Why: a rename is atomic for readers, but after a power loss the new name can survive over file contents that
 never reached the disk — an empty stage marker that says "finished", or the newest checkpoint over empty files
@@ -19,3 +20,12 @@ def fsync_path(path: str | os.PathLike) -> None:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def fsync_tree(folder: str | os.PathLike) -> None:
+    """Flush every file directly in `folder` (checkpoints and bundles are flat), then the folder itself."""
+    folder = Path(folder)
+    for path in folder.iterdir():
+        if path.is_file():
+            fsync_path(path)
+    fsync_path(folder)

@@ -38,6 +38,7 @@ import torch
 from core.device import resolve_device
 from core.errors import N3dmapError
 from services.bench.stages import write_json
+from services.durable import fsync_path, fsync_tree
 
 RULE_KINDS = ("fixed", "plateau", "epochs")
 MARKER = "stopping.json"
@@ -201,13 +202,17 @@ def heldout_task_loss(job, records: list[dict], *, checkpoint_dir: Path, batch_s
 
 
 def _select(bundle_dir: Path, run_dir: Path) -> None:
-    """Copy the bundle to RUN_DIR/selected atomically (a reader never sees half a bundle)."""
+    """Copy the bundle to RUN_DIR/selected atomically (a reader never sees half a bundle), flushed to disk before
+    the rename that makes it the selection (services.durable: the held-out history and the stage's marker that
+    name it are fsynced too, so after a power loss they never point at empty weights)."""
     tmp = run_dir / (SELECTED + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(bundle_dir, tmp)
+    fsync_tree(tmp)
     old = run_dir / (SELECTED + ".old")
     if (run_dir / SELECTED).exists():
         shutil.rmtree(old, ignore_errors=True)
         os.replace(run_dir / SELECTED, old)
     os.replace(tmp, run_dir / SELECTED)
+    fsync_path(run_dir)
     shutil.rmtree(old, ignore_errors=True)

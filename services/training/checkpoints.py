@@ -25,7 +25,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from core.errors import N3dmapError
-from services.durable import fsync_path
+from services.durable import fsync_path, fsync_tree
 from services.training.weight_average import WeightAverage
 
 TASK_FILE = "task.safetensors"
@@ -169,7 +169,7 @@ class LocalCheckpointStore:
         replaced = self._retire(final) if final.exists() else None
         # On disk before the rename makes it the newest, and the rename on disk before older ones are deleted:
         # after a power loss the newest name holds whole files, or the older checkpoints are still there.
-        _fsync_tree(staged)
+        fsync_tree(staged)
         os.replace(staged, final)
         fsync_path(self.root)
         retired = [self._retire(old) for old in self.list()[:-self.keep]]
@@ -185,14 +185,6 @@ class LocalCheckpointStore:
             shutil.rmtree(retired)
         os.replace(checkpoint, retired)
         return retired
-
-
-def _fsync_tree(folder: Path) -> None:
-    """Flush every file directly in `folder`, then the folder itself."""
-    for path in folder.iterdir():
-        if path.is_file():
-            fsync_path(path)
-    fsync_path(folder)
 
 
 def newest_complete_checkpoint(root: str | Path) -> Path | None:

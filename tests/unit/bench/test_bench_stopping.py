@@ -143,3 +143,25 @@ def test_fixed_and_epochs_rules_train_once(tmp_path):
     result = train_by_rule(StageRule(kind="epochs", epochs=3, min_steps=1, max_steps=100), tmp_path,
                            train_to=fake.train_to, heldout_loss=None, records=9, batch_size=2, log=lambda _: None)
     assert fake.calls == [15] and result["steps_run"] == 15 and (tmp_path / SELECTED / "bundle.json").exists()
+
+
+def test_the_selected_bundle_is_flushed_to_disk_before_it_becomes_the_selection(tmp_path, monkeypatch):
+    """Every file of the copied bundle and its folder are fsynced before the rename that makes it RUN_DIR/selected,
+    and the run folder after it: the held-out history and the marker that name the selection are fsynced, so a
+    power loss must not leave them pointing at empty weights."""
+    import os
+
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(os, "fsync", lambda fd: (events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}"))),
+                                                 real_fsync(fd))[1])
+    monkeypatch.setattr(os, "replace", lambda a, b: (events.append(("replace", str(a), str(b))), real_replace(a, b))[1])
+    fake = FakeTrainer(tmp_path, [])
+    train_by_rule(StageRule(kind="fixed", max_steps=7), tmp_path, train_to=fake.train_to, heldout_loss=None,
+                  records=4, batch_size=2, log=lambda _: None)
+    selected = tmp_path / SELECTED
+    rename = next(i for i, e in enumerate(events) if e[0] == "replace" and e[2] == str(selected))
+    staged = events[rename][1]
+    flushed = {e[1] for e in events[:rename] if e[0] == "fsync"}
+    assert {os.path.join(staged, "bundle.json"), staged} <= flushed
+    assert ("fsync", str(tmp_path)) in events[rename:]
