@@ -29,7 +29,7 @@ from core.geometry import camera, se3
 from core.geometry.boxes import box_T_obj, points_in_boxes
 from core.moving.amodal import SizePrior, amodal_box, split_oversized
 from core.moving.boxfit import fit_box_to_points
-from core.moving.ground import ground_y_at
+from core.moving.ground import DEFAULT_MARGIN_VOXELS, UP, ground_y_at
 from core.moving.components import to_numpy
 from core.moving.nms import nms_bev
 
@@ -115,7 +115,8 @@ def moving_objects_from_flow2d(flow2d, depth0, pix_T_cam, *, threshold: float, m
                                stabilise: bool = False, cam1_T_cam0=None, ref_T_cam0=None,
                                depth1=None, dt: float = 1.0, depth_tolerance: float = 1.0,
                                surround_px: int = 4, nms_iou: float = 0.3, size_prior: SizePrior | None = None,
-                               ground: np.ndarray | None = None, point_scale: float = 0.5) -> list[dict]:
+                               ground: np.ndarray | None = None, point_scale: float = 0.5,
+                               ground_margin: float | None = DEFAULT_MARGIN_VOXELS) -> list[dict]:
     """Scored 3D boxes of the moving regions of a 2D flow field.
 
     flow2d: H×W×2 pixels (t → t+1), depth0: H×W (frame t), pix_T_cam: 4×4. threshold: flow
@@ -127,7 +128,11 @@ def moving_objects_from_flow2d(flow2d, depth0, pix_T_cam, *, threshold: float, m
     center-surround ring. size_prior: complete each box to a whole object (core.moving.amodal, as the 3D
     methods do; None: the visible points' box), with `ground` (4,) the ground plane in ref (None: the visible
     vertical extent) and `point_scale` (metres) the scale amodal_box reads the points at (the 3D methods'
-    voxel size).
+    voxel size). ground_margin: with `ground`, pixels whose point lies less than this many `point_scale`s
+    above the plane (or below it) do not move, as the 3D methods' voxels within `MovingBoxesConfig.ground_margin`
+    of it do not (core.pipeline.moving_boxes); None: no such gate. Why: a 2D flow method's smooth flow spills
+    from an object's base onto the road around it, which then joins its cluster and widens its box — the 3D
+    methods drop those points, so the comparison should too.
 
     Returns a list, best score first, of dicts: `box_ref` (7,), `score` (2D center-surround: moving
     fraction of the cluster's bounding rectangle minus that of the ring around it, in [−1, 1]),
@@ -144,10 +149,16 @@ def moving_objects_from_flow2d(flow2d, depth0, pix_T_cam, *, threshold: float, m
         flow = flow - camera_flow2d(depth, pix_T_cam, cam1_T_cam0)
     valid = np.isfinite(depth) & (depth > 0)
     moving = (np.linalg.norm(flow, axis=-1) > threshold) & valid              # H×W
-    labels, count = ndimage.label(moving, structure=np.ones((3, 3)))
     xyz0, _ = _points_cam0(depth, pix_T_cam)
     xyz0 = xyz0.numpy().reshape(H, W, 3)                                     # H×W×3 cam0
     ref_T_cam = np.eye(4) if ref_T_cam0 is None else to_numpy(ref_T_cam0).astype(np.float64).reshape(4, 4)
+    if ground is not None and ground_margin is not None:
+        plane = to_numpy(ground).astype(np.float64).reshape(4)
+        plane = plane if plane[:3] @ UP >= 0 else -plane                     # normal up (fit_ground_plane's sign)
+        xyz_ref = xyz0 @ ref_T_cam[:3, :3].T + ref_T_cam[:3, 3]              # H×W×3 ref
+        height = xyz_ref @ plane[:3] + plane[3]                              # H×W metres above the plane
+        moving &= height >= ground_margin * point_scale
+    labels, count = ndimage.label(moving, structure=np.ones((3, 3)))
     cam0_T_cam1 = None if cam1_T_cam0 is None else np.linalg.inv(to_numpy(cam1_T_cam0).astype(np.float64).reshape(4, 4))
     found = []
     for k, region in enumerate(ndimage.find_objects(labels), start=1):

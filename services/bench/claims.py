@@ -20,7 +20,7 @@ from services.bench.aggregate import fmt, spread
 from services.bench.plan import OCCUPANCY_MODULE
 from services.bench.judge import (
     FLOORS, UNDETERMINED, AtLeast, Better, Condition, ControlFails, Positive, RatioAtMost, Unsaturated, WithinOf,
-    derive, judge,
+    seed_key, derive, judge,
 )
 
 AP, GAIN, EPE = FLOORS["ap"], FLOORS["gain"], FLOORS["epe"]
@@ -55,7 +55,9 @@ def _get(d, *path):
 
 def _values(per_seed: dict, getters: dict[str, Callable[[dict], float | None]]) -> dict[str, dict]:
     """{seed: {name: number}} from the raw per-seed results."""
-    return {str(seed): {name: get(result) for name, get in getters.items()} for seed, result in per_seed.items()}
+    # In the report's seed order (its outcome table's columns), so that "[…]" lists read in the same order.
+    return {str(seed): {name: get(result) for name, get in getters.items()}
+            for seed, result in sorted(per_seed.items(), key=lambda item: seed_key(str(item[0])))}
 
 
 def _ours(values: dict[str, dict], names: list[str], digits: int = 3) -> str:
@@ -202,13 +204,17 @@ def check_claims(per_seed: dict, *, budgets: list[str], variants: list[str] | No
 
     v = _values(per_seed, {"egomotion module": ap("moving", "contrastive, egomotion module"),
                            "GT egomotion": ap("moving", "contrastive, GT egomotion"),
-                           "2.5D": ap("moving", "2.5D Farneback")})
+                           "2.5D": ap("moving", "2.5D Farneback"),
+                           "2.5D stabilised": ap("moving", "2.5D Farneback stabilised")})
     claims.append(_claim(
         "moving_camera_stabilised", "With a moving camera, the egomotion module stabilises well enough that "
-        "detection stays near its ground-truth-egomotion level, while the unstabilised 2.5D baseline fails.",
-        "ours similar to static scenes; 2.5D baseline poor",
-        [WithinOf("egomotion module", "GT egomotion", STABILISED_TOLERANCE, AP), Better("egomotion module", "2.5D", AP)],
-        v, ["egomotion module", "GT egomotion", "2.5D"], quick=quick, note="moving-camera AP"))
+        "detection stays near its ground-truth-egomotion level, while the 2.5D baseline fails, stabilised or not.",
+        "ours similar to static scenes; 2.5D baseline poor, and poorer still stabilised",
+        [WithinOf("egomotion module", "GT egomotion", STABILISED_TOLERANCE, AP), Better("egomotion module", "2.5D", AP),
+         Better("egomotion module", "2.5D stabilised", AP)],
+        v, ["egomotion module", "GT egomotion", "2.5D", "2.5D stabilised"], quick=quick,
+        note="moving-camera AP; the stabilised 2.5D row subtracts the true camera motion's 2D flow, as the paper's "
+             "stabilised baseline does"))
 
     v = _values(per_seed, {k: (lambda r, k=k: _get(r, "occupancy", OCCUPANCY_MODULE, k))
                            for k in ("acc_occupied", "acc_free", "acc_all")})

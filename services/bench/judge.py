@@ -216,7 +216,7 @@ def judge(conditions: list[Condition], per_seed: Mapping[str, SeedValues], *, qu
     outcomes = {seed: [c.outcome(values) for c in conditions] for seed, values in per_seed.items()}
     if quick:
         return Verdict(None, NOT_JUDGED, "quick profile: its few steps say nothing about the paper", outcomes)
-    failing = {i: sorted((s for s, row in outcomes.items() if row[i] == "disagree"), key=_seed_key)
+    failing = {i: sorted((s for s, row in outcomes.items() if row[i] == "disagree"), key=seed_key)
                for i in range(len(conditions))}
     if any(failing.values()):   # per condition, the seeds that fail it
         return Verdict(False, FAILS, "; ".join(f"seed(s) {', '.join(seeds)} fail '{conditions[i].text()}'"
@@ -258,5 +258,5 @@ def _below_meaning(floor: Floor, *values: float) -> bool:
     return floor.meaning is not None and all(v < floor.meaning for v in values)
 
 
-def _seed_key(seed: str):
+def seed_key(seed: str):
     return (0, int(seed)) if str(seed).isdigit() else (1, str(seed))

@@ -22,7 +22,7 @@ from services.bench import aggregate as agg
 from services.bench.claims import check_claims
 from services.bench.claims import ABSOLUTE_TARGETS
 from services.bench.targets import check_targets
-from services.bench.judge import FLOORS, MIN_SEEDS
+from services.bench.judge import FLOORS, MIN_SEEDS, seed_key
 from services.bench.plan import OCCUPANCY_ROWS, PRETRAINED_ARMS, BenchConfig
 from services.reports import Report
 
@@ -252,7 +252,7 @@ def _claims_section(report: Report, claims: list[dict], config: BenchConfig) -> 
     for c in claims:
         report.text(f"- **{c['id']}: {c['verdict']}** ({c['reason']}). {c['claim']} Criterion: {c['criterion']}. "
                     f"Ours (mean ± std [per seed]): {c['ours']}. Paper: {c['paper']}.")
-    seeds = sorted({s for c in claims for s in c["outcomes"]}, key=lambda s: (not s.isdigit(), int(s) if s.isdigit() else s))
+    seeds = sorted({s for c in claims for s in c["outcomes"]}, key=seed_key)
     report.table(["claim", "verdict", *[f"seed {s}" for s in seeds]],
                  [[c["id"], c["verdict"], *[" / ".join(c["outcomes"].get(s, ["–"])) for s in seeds]] for c in claims])
     if not config.quick:

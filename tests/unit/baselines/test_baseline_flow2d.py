@@ -131,3 +131,24 @@ def test_a_size_prior_completes_the_lifted_face_as_the_3d_methods_do():
     assert box[2] > visible["box_ref"][2] + 0.5                                 # it grew away from the camera
     assert box[1] + 0.5 * box[4] == pytest.approx(2.0, abs=1e-6)                # and stands on the ground
     assert whole["score"] == visible["score"]
+
+
+def test_flow_spilling_onto_the_ground_is_gated_as_the_3d_methods_ground_voxels_are():
+    """Rows below the square see a floor 2 m under the camera; flow that spills onto it moves no box when the
+    ground plane is given (the 3D methods drop voxels within a quarter voxel of it), while the square standing
+    above it is still found. The slow reference: each floor pixel's lifted point lies on the plane (height 0)."""
+    _, _, depth0, _ = image_pair()
+    floor_rows = slice(50, H)
+    v = np.arange(H, dtype=float)[floor_rows, None]
+    depth0[floor_rows] = 2.0 * F / (v - K[1, 2])            # the ray of row v meets y = 2 m at this depth
+    lifted_y = (v - K[1, 2]) / F * depth0[floor_rows]
+    np.testing.assert_allclose(lifted_y, 2.0)
+    flow = np.zeros((H, W, 2))
+    flow[56:66, 10:40, 0] = 3.0                             # a patch of floor "moving" (Farneback's spill)
+    flow[SQUARE + (0,)] = SHIFT_U
+    for ground in (np.array([0.0, -1.0, 0.0, 2.0]), np.array([0.0, 1.0, 0.0, -2.0])):   # either sign of the plane
+        gated = moving_objects_from_flow2d(flow, depth0, K, threshold=1.0, min_pixels=30, ground=ground)
+        assert len(gated) == 1 and gated[0]["box_ref"][2] == pytest.approx(5.0, abs=0.1)   # the square only
+    ungated = moving_objects_from_flow2d(flow, depth0, K, threshold=1.0, min_pixels=30,
+                                         ground=np.array([0.0, -1.0, 0.0, 2.0]), ground_margin=None)
+    assert len(ungated) == 2

@@ -144,7 +144,7 @@ def _result(c_few, r_few, n_few, c_all, n_all, *, ret=(0.30, 0.10), epe=(3.3, 5.
         "moving": {"static": {"contrastive, GT egomotion": {"ap": 0.5}, "2.5D Farneback": {"ap": 0.3},
                               "regression, GT egomotion": {"ap": 0.2}},
                    "moving": {"contrastive, egomotion module": {"ap": 0.005}, "contrastive, GT egomotion": {"ap": 0.0},
-                              "2.5D Farneback": {"ap": 0.001}}},
+                              "2.5D Farneback": {"ap": 0.001}, "2.5D Farneback stabilised": {"ap": 0.002}}},
         # the claim reads the occupancy module; a pretraining head's better scores must not count
         "occupancy": {"contrastive, occupancy module, balanced threshold":
                       {"acc_occupied": 0.97, "acc_free": 0.90, "acc_all": 0.95, "threshold": 0.4},
@@ -252,11 +252,13 @@ def test_each_claim_reads_its_own_rows_not_their_neighbours():
         r["retrieval"]["contrastive"]["2d"]["p@1"] = 0.05                       # 2D fails, 3D holds
         r["moving"] = {
             "static": {"contrastive, GT egomotion": {"ap": 0.50}, "regression, GT egomotion": {"ap": 0.20},
-                       "contrastive, egomotion module": {"ap": 0.10}, "2.5D Farneback": {"ap": 0.30}},
-            # module within 0.1 of the true poses and ahead of 2.5D by 0.03; swapped with the true poses'
-            # row it would lead 2.5D by only 0.01
+                       "contrastive, egomotion module": {"ap": 0.10}, "2.5D Farneback": {"ap": 0.30},
+                       "2.5D Farneback stabilised": {"ap": 0.70}},
+            # module within 0.1 of the true poses and ahead of 2.5D by 0.03 and of stabilised 2.5D by 0.05; swapped
+            # with the true poses' row it would lead 2.5D by only 0.01; the static setting's stabilised row would fail
             "moving": {"contrastive, egomotion module": {"ap": 0.63}, "contrastive, GT egomotion": {"ap": 0.61},
-                       "2.5D Farneback": {"ap": 0.60}, "regression, GT egomotion": {"ap": 0.90}}}
+                       "2.5D Farneback": {"ap": 0.60}, "2.5D Farneback stabilised": {"ap": 0.58},
+                       "regression, GT egomotion": {"ap": 0.90}}}
         # rotation and translation on different scales: swapping model and ICP, or R and t, fails
         r["egomotion"] = {"methods": {"model": {"rot_err_rad_mean": 0.001, "trans_err_m_mean": 0.02},
                                       "icp": {"rot_err_rad_mean": 0.010, "trans_err_m_mean": 0.03},
@@ -333,3 +335,13 @@ def test_with_three_budgets_the_few_label_gain_is_compared_with_the_next_budget_
     assert "gain@all" not in held["per_seed"]["0"]
     assert gain_claim(0.90, 0.60)["verdict"] == FAILS          # gain 0.3 at 8 labels: larger than at 2
     assert gain_claim(0.99, 0.985)["verdict"] == UNDETERMINED  # both saturated at 8 labels too
+
+
+def test_each_claims_per_seed_list_is_in_the_outcome_tables_seed_order():
+    """The '[…]' of a claim's figures is unlabelled: it must follow the report's seed columns (numeric order), not
+    the order the seeds were run in."""
+    per_seed = {"10": _result(0.60, 0.50, 0.40, 0.70, 0.65, ret=(0.31, 0.10)),
+                "2": _result(0.60, 0.50, 0.40, 0.70, 0.65, ret=(0.22, 0.10))}
+    retrieval = next(c for c in check_claims(per_seed, budgets=["2", "all"]) if c["id"] == "retrieval_3d")
+    assert list(retrieval["per_seed"]) == ["2", "10"]
+    assert "contrastive 0.265 ± " in retrieval["ours"] and "[0.220, 0.310]" in retrieval["ours"]
