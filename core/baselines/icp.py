@@ -29,7 +29,8 @@ from core.errors import ShapeError
 class IcpResult:
     target_T_source: np.ndarray  # 4×4 float64
     iterations: int
-    rmse: float                  # point-to-plane residual RMS (metres) over inliers at the last step
+    rmse: float                  # point-to-plane residual RMS (metres) over the last step's inliers, as its linear
+                                 # solve predicts it after that step's update (not re-measured at the returned pose)
     inlier_fraction: float
 
 

@@ -14,10 +14,11 @@ visible extent is the object's, across it only the surface's thickness (one voxe
 2. The visible box is the L-shape bird's-eye rectangle of the voxel centres (closeness criterion, which
    puts the two legs of an L on two edges where the minimum-area rectangle often lies along the L's
    hypotenuse; core.moving.boxfit.l_shape_rectangle) × their vertical extent, each side grown by `pad`.
-   The pad depends on what a voxel means: the pipeline's moving voxels are those whose centres move,
-   i.e. lie inside the object, so their centres span about a voxel less than it (pad = one voxel);
-   voxels a surface merely passes through scatter about it by ± half a voxel (pad = 0: padding would
-   inflate a voxelised 4.4 × 1.6 × 1.8 m car at 0.25 m voxels to 3D IoU 0.57 with itself, against 0.77).
+   The pad depends on what a voxel means: voxels a surface merely passes through (the pipeline's default,
+   `moving_voxels="surface"`) scatter about it by ± half a voxel (pad = 0: padding would inflate a
+   voxelised 4.4 × 1.6 × 1.8 m car at 0.25 m voxels to 3D IoU 0.57 with itself, against 0.77); voxels whose
+   centres move (`moving_voxels="centres"`) lie inside the object, so their centres span about a voxel less
+   than it (pad = one voxel).
 3. Which rectangle side is the object's length: when the component's flow is coherent (its voxels move
    as one, along one bird's-eye direction: the caller's `heading`), the side closer to that direction —
    objects move along their length, and a strip of one face says nothing about which face it is.

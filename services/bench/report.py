@@ -149,10 +149,10 @@ def _detection_section(report: Report, det: dict, config: BenchConfig, budgets: 
 
 def _retrieval_section(report: Report, ret: dict) -> None:
     report.heading("2D and 3D patch retrieval")
-    report.text("Precision at rank K: each query patch (2D: projector render of the target view; 3D: feature cube "
-                "of the map from the other views) ranks every candidate of the pool (2D: bottom-up features of the "
-                "target image, or the image itself for the regression model; 3D: the target view's own map) by "
-                "L2 distance; one candidate is its true correspondence.")
+    report.text("Precision at rank K: each query patch (2D: projector render of the target view from the other "
+                "views; 3D: feature cube of the map of one view, view 0) ranks every candidate of the pool (2D: "
+                "bottom-up features of the target image, or the image itself for the regression model; 3D: cubes "
+                "of the map fused from the other views) by L2 distance; one candidate is its true correspondence.")
     report.table(["pretraining", "2D P@1", "2D P@5", "2D P@10", "3D P@1", "3D P@5", "3D P@10"],
                  [[arm, *[agg.fmt(ret[arm][d][k]) for d in ("2d", "3d") for k in ("p@1", "p@5", "p@10")]]
                   for arm in ret])

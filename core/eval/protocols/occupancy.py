@@ -34,7 +34,7 @@ NEEDS = ("mapper", "occupancy")
 @dataclass(frozen=True, kw_only=True)
 class OccupancyEvalConfig:
     input_view: int = 0       # the single view the map is built from
-    threshold: float = 0.5    # P(occupied) above which a voxel counts as occupied
+    threshold: float = 0.5    # P(occupied) at or above which a voxel counts as occupied
 
 
 # Thresholds `balanced_threshold` chooses among: 0.05, 0.10, ..., 0.95.
