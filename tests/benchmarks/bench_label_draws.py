@@ -2,7 +2,8 @@
 
     python tests/benchmarks/bench_label_draws.py --work REPORT_DIR/work --heldout DIR --out OUT
         [--seeds 0 1 2] [--arms contrastive regression] [--draws 0 1 2 3 4 5 6 7] [--budget 2]
-        [--pretrain-steps N --pretrain-options JSON] [--frozen] [--detector-steps N [N ...]]
+        [--pretrain-steps N --pretrain-options JSON | --continue-pretraining N] [--frozen]
+        [--detector-steps N [N ...]]
         [--device cpu|cuda] [--threads 1] [--heldout-seed 7 [--heldout-episodes 32]]
 
 For each seed of a `bench paper` work directory and each pretraining arm, trains the fine-tuned detector
@@ -13,6 +14,10 @@ is the benchmark's own set — with detector seed s + 100·d, and scores mAP on 
 that are not the benchmark's test set). With --pretrain-steps N each arm is first pretrained here for N
 fixed steps with the plan's pretraining options updated by --pretrain-options (e.g. '{"coeff_match": 0}'
 for the paper's objectives without the matching term) instead of reading the benchmark's pretraining.
+With --continue-pretraining N each arm's benchmark pretraining that stopped before step N is continued to N
+(a copy of its newest complete checkpoint in OUT/seed<s>_pretrain_<arm>_to<N>, the same options and per-step
+seeds, so the same run as if its rule had let it go on; the learning rate is constant) and its step-N weights are
+the arm's; an arm that already ran N steps keeps its benchmark selection (was the plateau rule's stop too early?).
 With --detector-steps N the detectors train N fixed steps instead of the plan's rule (is that rule long
 enough to converge?); with several lengths (ascending) each detector is scored at every one of them, one
 run continued from the last (the learning rate is constant and every step seeded from (seed, step), so
@@ -37,6 +42,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import statistics
 import time
 from pathlib import Path
@@ -70,6 +76,8 @@ def main() -> None:
     p.add_argument("--max-heldout", type=int, default=None)
     p.add_argument("--pretrain-steps", type=int, default=0)
     p.add_argument("--pretrain-options", type=json.loads, default={})
+    p.add_argument("--continue-pretraining", type=int, default=0, metavar="N",
+                   help="continue each arm's benchmark pretraining that stopped earlier to N steps")
     p.add_argument("--frozen", action="store_true",
                    help="pretrained arms' detectors on frozen features (the paper's protocol); random stays end to end")
     p.add_argument("--detector-steps", type=int, nargs="+", default=[0],
@@ -81,6 +89,8 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
 
+    if args.pretrain_steps and args.continue_pretraining:
+        p.error("--pretrain-steps (a fresh pretraining) and --continue-pretraining exclude each other")
     lengths = args.detector_steps
     if len(lengths) > 1 and (0 in lengths or lengths != sorted(set(lengths))):
         p.error("--detector-steps: several lengths must be positive and ascending")
@@ -106,6 +116,8 @@ def main() -> None:
     def pretrained(seed: int, arm: str) -> Path | None:
         if arm == "random":
             return None
+        if args.continue_pretraining:
+            return _continued_pretraining(config, args, seed, arm, train_dir, val_records)
         if not args.pretrain_steps:
             return args.work / f"seed{seed}" / f"pretrain_{arm}" / "selected"
         return train_stage(config, task="pretrain", data_dir=train_dir, run_dir=args.out / f"seed{seed}_pretrain_{arm}",
@@ -146,6 +158,34 @@ def main() -> None:
                         f.write(json.dumps(row) + "\n")
                     print(json.dumps(row), flush=True)
     _summary(rows)
+
+
+def _continued_pretraining(config: BenchConfig, args, seed: int, arm: str, train_dir: Path,
+                           val_records: list[dict]) -> Path:
+    """The bundle of seed `seed`'s `arm` pretraining at step --continue-pretraining (see the module docstring)."""
+    import shutil
+
+    from services.training.checkpoints import newest_complete_checkpoint
+
+    steps = args.continue_pretraining
+    stage = args.work / f"seed{seed}" / f"pretrain_{arm}"
+    if json.loads((stage / "stopping.json").read_text())["steps_run"] >= steps:
+        return stage / "selected"
+    run_dir = args.out / f"seed{seed}_pretrain_{arm}_to{steps}"
+    if not (run_dir / "checkpoints").exists():
+        newest = newest_complete_checkpoint(stage / "checkpoints")
+        if newest is None:
+            raise SystemExit(f"{stage}/checkpoints holds no complete checkpoint to continue from")
+        staging = run_dir.with_name(run_dir.name + ".tmp")
+        shutil.rmtree(staging, ignore_errors=True)
+        shutil.copytree(newest, staging / "checkpoints" / newest.name)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        os.replace(staging / "checkpoints", run_dir / "checkpoints")
+        shutil.rmtree(staging)
+        print(f"continuing {stage} from {newest.name} to step {steps} in {run_dir}", flush=True)
+    return train_stage(config, task="pretrain", data_dir=train_dir, run_dir=run_dir, rule=StageRule.fixed(steps),
+                       seed=seed, heldout_records=val_records,
+                       task_options=config.stage_options("pretrain", {"objective": arm}), log=lambda _: None)
 
 
 def _regenerate_missing_data(config: BenchConfig, args) -> None:
