@@ -16,7 +16,7 @@ project set the learned chain (features → flow → moving objects, egomotion, 
 
 `check_targets(per_seed, quick=...)` returns one dict per target: {"id", "target", "criterion", "per_seed":
 {seed: text}, "met": True / False / None}; each seed's text ends in ✓ (meets it), ✗ (misses it) or ? (a number
-missing), since a value printed at its limit may lie just past it. A target is met only when every seed meets it and there are at least MIN_SEEDS
+missing), since a value printed at its limit may lie just past it (not in the quick profile, which judges nothing). A target is met only when every seed meets it and there are at least MIN_SEEDS
 seeds; it is not met when a seed misses it (however few seeds there are); None (undetermined) when a number is
 missing (or not finite) or there are too few seeds, and always in the quick profile. A value at a limit passes
 (services.bench.judge's round-off allowance). Which learned row is "best" is chosen once per camera setting, by its mean AP over the seeds (not seed
@@ -85,7 +85,7 @@ def check_targets(per_seed: dict, *, quick: bool = False) -> list[dict]:
     targets = []
 
     def add(tid: str, target: str, criterion: str, texts: dict, checks: dict) -> None:
-        marked = {s: f"{text} {_MARKS[checks.get(s)]}" for s, text in texts.items()}
+        marked = texts if quick else {s: f"{text} {_MARKS[checks.get(s)]}" for s, text in texts.items()}
         targets.append({"id": tid, "target": target, "criterion": criterion, "per_seed": marked,
                         "met": None if quick else _verdict(checks)})
 

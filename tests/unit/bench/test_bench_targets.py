@@ -99,6 +99,7 @@ def test_not_finite_is_undetermined_a_limit_passes_and_the_quick_profile_is_not_
     assert limits["egomotion_vs_icp_ratio"]["met"] is True and limits["flow_vs_zero_motion_ratio"]["met"] is True
     quick = check_targets({s: _result() for s in ("0", "1", "2")}, quick=True)
     assert all(t["met"] is None for t in quick) and all(t["per_seed"]["0"] for t in quick)
+    assert not any(t["per_seed"]["0"].endswith(("✓", "✗", "?")) for t in quick)   # unjudged: no marks
 
 
 def test_a_seed_printed_at_a_limit_but_past_it_is_marked_as_missing_it():
