@@ -97,21 +97,23 @@ def retrieval(bundle: Bundle, records, *, device, per_example: int, cube: int, s
 
 
 def moving(model_bundles: dict[str, Bundle], records, *, device, iou: float, threshold_px: float,
-           min_pixels: int) -> dict:
+           min_pixels: int, dt: float) -> dict:
     """Moving-object AP per camera setting for each named flow bundle (its "3d (model)" row) plus, from
     the first bundle's run, the oracle-3D-flow and 2.5D baseline rows. A bundle holding an `egomotion`
-    module is stabilised with it, otherwise with the record poses (the protocol's rule).
+    module is stabilised with it, otherwise with the record poses (the protocol's rule). dt: seconds between
+    the records' steps (the world's), which turns the boxes' speed threshold (m/s) into voxels per pair.
 
     Returns {"iou", "pairs": {setting: n}, setting: {method: {"ap", "ap_by_iou", "gt_boxes",
     "detections", "curve": {"precision", "recall"}}}}.
     """
     from core.eval.protocols import moving as protocol
     from core.eval.thresholds import threshold_key
+    from core.pipeline.moving import MovingObjectsConfig
 
     out: dict = {"iou": iou}
     for i, (name, bundle) in enumerate(model_bundles.items()):
-        config = protocol.MovingEvalConfig(threshold_px=threshold_px, min_pixels=min_pixels, min_points=10,
-                                           baselines=i == 0)
+        config = protocol.MovingEvalConfig(objects=MovingObjectsConfig(dt=dt), threshold_px=threshold_px,
+                                           min_pixels=min_pixels, min_points=10, baselines=i == 0)
         result = protocol.evaluate(bundle, records, config, device=device)
         out["pairs"] = result["pairs"]
         for setting, per_method in result["acc"].items():

@@ -208,7 +208,8 @@ def seed_stages(stages: StageRunner, config: BenchConfig, seed: int, data: dict,
                    "input volumes, GT egomotion": volume,
                    "input volumes, egomotion module": with_egomotion(volume)}
         return evaluations.moving(bundles, test_records, device=device, iou=config.moving_iou,
-                                  threshold_px=config.flow2d_threshold_px, min_pixels=config.flow2d_min_pixels)
+                                  threshold_px=config.flow2d_threshold_px, min_pixels=config.flow2d_min_pixels,
+                                  dt=config.world_config().dt)   # the world's step (a new world reruns via the data)
     result["moving"] = evaluate("moving/all", moving_metrics, reads=(*flows.values(), ego_dir))
     return result
 

@@ -31,7 +31,7 @@ from core.errors import DataError
 from core.eval.method_ap import MethodAP
 from core.eval.moving_protocol import camera_setting, gt_moving_boxes, moving_objects_2p5d_rig
 from core.eval.protocols.inputs import pair_inputs, record_batch
-from core.eval.protocols.moving_oracle import oracle_boxes
+from core.eval.protocols.moving_oracle import oracle_boxes, pair_ground
 from core.moving.amodal import SizePrior, estimate_size_prior
 from core.pipeline.moving import MovingObjectsConfig, moving_objects
 
@@ -101,10 +101,13 @@ def baseline_priors(records, grid, config: "MovingEvalConfig") -> dict:
     extents = {source: [] for source, stabilise in BASELINES.values() if stabilise}
     for record in records:
         for t in range(np.asarray(record["rgb"]).shape[0] - 1):
+            # the ground gate of the scored pairs (evaluate), or the prior counts the road pixels they drop
+            ground = pair_ground(record, t, config.objects)
             for source in extents:
                 boxes, _ = moving_objects_2p5d_rig(record, t, flow_source=source, stabilise=True,
                                                    threshold_px=config.threshold_px, min_pixels=config.min_pixels,
-                                                   dt=config.objects.dt, nms_iou=config.objects.nms_iou, grid=grid)
+                                                   dt=config.objects.dt, nms_iou=config.objects.nms_iou, grid=grid,
+                                                   ground=ground)
                 extents[source] += list(boxes[:, 3:6])
     priors = {source: estimate_size_prior(np.array(found)) if found else None for source, found in extents.items()}
     return {name: priors[source] for name, (source, _) in BASELINES.items()}

@@ -6,6 +6,7 @@ Frames (docs/conventions.md#frames): everything is in ref_t of the pair (t, t+1)
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from core.data.ground_truth import gt_flow, points_in_ref
@@ -13,6 +14,19 @@ from core.geometry.poses import camera_centres, rig_cam_T_ref
 from core.geometry.voxelize import voxelize
 from core.moving.ground import fit_ground_plane
 from core.pipeline.moving import MovingObjectsConfig, boxes_from_flow
+
+
+def pair_ground(record, t: int, config: MovingObjectsConfig) -> np.ndarray | None:
+    """The ground plane (4,) of pair (t, t+1) in ref_t, fitted to frame t's depth points as the 3D methods fit
+    theirs; None when `config` has no ground gate (`ground_margin` None). The 2.5D baselines stand their
+    boxes on it and drop the pixels at or below it: in the scored pairs and when their size prior is
+    estimated alike (core.eval.protocols.moving.baseline_priors)."""
+    xyz, valid = points_in_ref(record, t)                                       # V×H×W×3, V×H×W
+    return _ground_of(xyz, valid, config)
+
+
+def _ground_of(xyz: torch.Tensor, valid: torch.Tensor, config: MovingObjectsConfig) -> np.ndarray | None:
+    return fit_ground_plane(xyz[valid].double().numpy()) if config.ground_margin is not None else None
 
 
 def oracle_boxes(record, t: int, grid, config: MovingObjectsConfig) -> dict:
@@ -25,8 +39,8 @@ def oracle_boxes(record, t: int, grid, config: MovingObjectsConfig) -> dict:
     0.616 / 0.741 when the true flow moved only the voxels with centres inside (half of the voxels holding
     the visible surface read as static) and its boxes were padded one voxel."""
     true_flow = gt_flow(record, t, grid)[None]                                  # 1×3×Z×Y×X
-    xyz, valid = points_in_ref(record, t)                                       # the same ground plane rule
-    ground = [fit_ground_plane(xyz[valid].double().numpy()) if config.ground_margin is not None else None]
+    xyz, valid = points_in_ref(record, t)                                       # V×H×W×3, V×H×W
+    ground = [_ground_of(xyz, valid, config)]                                   # the same ground plane rule
     cam_T_ref = rig_cam_T_ref(torch.as_tensor(record["world_T_cam"][t], dtype=torch.float64)[None],
                               torch.as_tensor(record["world_T_ref"][t], dtype=torch.float64)[None])  # 1×V×4×4
     viewpoints = camera_centres(cam_T_ref).float()                              # 1×V×3 camera centres in ref

@@ -80,3 +80,22 @@ def test_cli_world_reaches_the_plan_and_bad_input_names_it(tmp_path, monkeypatch
     assert stop.value.code == 2 and "--world" in capsys.readouterr().err
     assert main(base + ["--world", '{"exposure": 1}']) != 0  # a BenchConfigError: one line, no traceback
     assert "unknown WorldConfig field(s) ['exposure']" in capsys.readouterr().err
+
+
+def test_moving_objects_are_scored_with_the_worlds_step(monkeypatch):
+    """The boxes' speed threshold is m/s: the moving-object evaluation must turn it into voxels per pair with
+    the world's dt, not the default 0.2 s (a world stepping 0.1 s halves every object's flow)."""
+    from core.eval.protocols import moving as protocol
+    from services.bench import evaluations
+
+    seen = []
+
+    def evaluate(bundle, records, config, *, device):   # records the config; no pairs to score
+        seen.append(config.objects.dt)
+        return {"pairs": {"static": 0, "moving": 0}, "acc": {}}
+    monkeypatch.setattr(protocol, "evaluate", evaluate)
+    config = plan_for("tiny", quick=True, world={"dt": 0.1})
+    assert config.world_config().dt == 0.1
+    evaluations.moving({"a": None, "b": None}, [], device="cpu", iou=0.5, threshold_px=1.0, min_pixels=15,
+                       dt=config.world_config().dt)
+    assert seen == [0.1, 0.1]
