@@ -113,7 +113,7 @@ def main() -> None:
 
 def _summary(rows: list[dict], steps: int) -> None:
     by = {(r["seed"], r["row"]): r for r in rows}
-    print(f"\nmoving-voxel L1 EPE (gated / filled / raw); contrastive − regression (negative: contrastive better)")
+    print("\nmoving-voxel L1 EPE (gated / filled / raw); contrastive − regression (negative: contrastive better)")
     for seed in sorted({r["seed"] for r in rows}):
         line = [f"seed {seed}"]
         reg = by.get((seed, "regression (benchmark)"))
