@@ -89,7 +89,7 @@ def test_the_summary_says_per_seed_what_is_under_way_and_what_runs_next(out):
     assert lines[0].startswith("bench R: preset tiny, seeds [0, 1]: 5 of ") and "6 under way" in lines[0]
     assert lines[1] == "  data: 3 of 3 finished"
     assert lines[2].startswith("  seed0: 2 of ") and "under way: pretrain_contrastive at step 2 (its rule stops by " in lines[2]
-    assert "40 s in stopped attempts" in lines[2] and "next to run: detector_random_finetuned_L2" in lines[2]
+    assert "40 s in stopped attempts" in lines[2] and "next to run: flow_regression" in lines[2]   # flows run right after the pretrainings
     # the loop's newest progress line: 7 steps to go at 0.05 steps/s, written two minutes ago
     assert "; logged step 4 of 11, 0.05 steps/s (~2 min to go at that pace), 2 min ago;" in lines[2]
     assert "logged" not in lines[3]   # no progress line written: nothing said
