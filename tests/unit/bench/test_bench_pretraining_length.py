@@ -28,3 +28,11 @@ def test_the_other_stages_keep_their_held_out_rules():
     rules = plan_for("small").rules
     assert {rules.flow.kind, rules.egomotion.kind, rules.occupancy.kind} == {"plateau"}
     assert rules.detector.kind == "epochs"
+
+
+def test_each_seed_trains_its_flows_right_after_its_pretrainings(tmp_path):
+    # the flow claims are what a change of the pretrainings is for: a regeneration answers them first
+    names = [n for n in _dry_run(plan_for("small"), tmp_path).inputs if n.startswith("seed0/")]
+    trained = [n for n in names if "/eval/" not in n]
+    assert trained[:5] == ["seed0/pretrain_regression", "seed0/pretrain_contrastive", "seed0/flow_regression",
+                           "seed0/flow_contrastive", "seed0/flow_volume"]
