@@ -113,12 +113,16 @@ def test_bf16_training_tracks_the_fp32_loss_curve(tiny_train_data, tmp_path, cap
     same seed draws the same batches and views, so the curves differ only by bf16 rounding.
 
     Stated tolerances, relative to the fp32 loss: step 1 (same weights, same batch: the bf16 forward
-    alone) within 0.5 %, every step within 4 %. Measured (regression, tiny, 8 steps, batch 2, lr 3e-3,
-    1 thread, AVX512-bf16 CPU): step 1 0.02 %, max 2.3 % (step 5). The test can fail: with the geometry
-    under autocast too (core.precision's float32 geometry removed) step 1 was off by 1.3 % and step 2
-    by 8.5 %; an fp32 run at 1.5× the lr is off by up to 5.3 %, another seed by 17 %. The contrastive
-    objective is not used here: its negatives are drawn from distance-weighted probabilities, so bf16
-    rounding changes the draws and its curve wanders as far as another lr's (2.8 % vs 3.0 %)."""
+    alone) within 0.5 %, the mean over the 8 steps within 2 %. Why the mean and not each step: rounding
+    differences grow through the steps (training at this lr is sensitive to small changes), so the last
+    steps' deviation depends on the CPU's bf16 kernels — max 2.3 % (step 5) on the Intel AVX512-bf16 machine
+    the test was written on, 4.4 % (step 8) on an AMD EPYC (session 36), where an fp32 run at 1.1 × the lr is
+    off by 5.5 % at step 8 too. Measured on that EPYC (regression, tiny, 8 steps, batch 2, lr 3e-3, 1 thread),
+    mean deviation over the steps: bf16 1.1 %, fp32 at 1.1 × the lr 1.4 %, at 1.5 × 2.8 %, another seed 5.2 %;
+    step 1: bf16 0.03 %, another seed 6.3 %. The test can fail: with the geometry under autocast too
+    (core.precision's float32 geometry removed) step 1 was off by 1.3 % and step 2 by 8.5 % (Intel). The
+    contrastive objective is not used here: its negatives are drawn from distance-weighted probabilities, so
+    bf16 rounding changes the draws and its curve wanders as far as another lr's (2.8 % vs 3.0 %)."""
     torch.set_num_threads(1)
     curves = {}
     for precision in ("fp32", "bf16"):
@@ -130,7 +134,7 @@ def test_bf16_training_tracks_the_fp32_loss_curve(tiny_train_data, tmp_path, cap
     assert len(fp32) == len(bf16) == 8
     deviation = [abs(b - f) / f for f, b in zip(fp32, bf16)]
     assert deviation[0] <= 0.005, (fp32, bf16)
-    assert max(deviation) <= 0.04, (deviation, fp32, bf16)
+    assert sum(deviation) / len(deviation) <= 0.02, (deviation, fp32, bf16)
     assert bf16 != fp32                                    # bf16 really ran (rounding shows in the losses)
     assert sum(bf16[-3:]) < sum(bf16[:3])                  # and it trains
     config = json.loads((tmp_path / "bf16" / "bundle" / "bundle.json").read_text())
