@@ -27,14 +27,14 @@ def register(tasks) -> None:
                         help="cost-volume window in voxels (x, y, z) at every level (default 1 1 1; 2 1 2 "
                              "measured better over matching-trained features, docs/findings.md)")
     parser.add_argument("--refine-radius", type=non_negative_int, nargs=3, default=None, metavar=("RX", "RY", "RZ"),
-                        help="window of the last, full-grid correlator step (default: --radius's)")
+                        help="window of the last, full-grid correlator step (default 3 1 3: the task's)")
     parser.add_argument("--cost-channels", type=non_negative_int, default=None, metavar="K",
                         help="squeeze the window's costs to K channels (a learned 1x1x1 conv) before each "
                              "decoder, so a wide --radius costs little (default: the task's)")
     parser.add_argument("--refine-aggregate", type=non_negative_int, nargs=3, default=None,
                         metavar=("AX", "AY", "AZ"),
                         help="average the full-grid step's costs over a box of +-AX, AY, AZ voxels before its "
-                             "soft-argmax (cost aggregation; default: the task's)")
+                             "soft-argmax (cost aggregation; default 1 1 1: the task's)")
     parser.add_argument("--reproject-fraction", type=float, default=None, metavar="P",
                         help="share of the synthetic rigid steps whose moved input is the frame re-unprojected with "
                              "the motion (large, small, and a jitter at the egomotion module's error scale) "
