@@ -34,7 +34,7 @@ CLAIMS = ("detection_few_labels", "detection_more_labels", "detection_gain_low_d
 
 TASK_OPTIONS = {"mapper": {"encoder_full_res": 4}, "pretrain": {"coeff_match": 0.5},
                 "pretrain_contrastive": {"shift_positives": 1},
-                "flow_features": {"refine_radius": [2, 1, 2], "refine_aggregate": [1, 1, 1]}}
+                "flow_features": {"refine_radius": [2, 1, 2], "refine_aggregate": [1, 0, 1]}}  # not the defaults
 
 
 def _bench_cmd(out: Path, options: dict = TASK_OPTIONS) -> list[str]:
@@ -158,7 +158,11 @@ def test_metrics_json_has_every_key(bench_run):
         # --task-options: the mapper option reaches every stage that builds a mapper, the flow_features
         # options only the arms' flow stages
         assert bundle["modules"]["mapper"]["config"]["full_res"] == 4
-        assert (bundle["modules"]["flow"]["config"]["refine_aggregate"] == [1, 1, 1]) == (inputs == "features")
+        flow_config = bundle["modules"]["flow"]["config"]
+        if inputs == "features":
+            assert (flow_config["refine_radius"], flow_config["refine_aggregate"]) == ([2, 1, 2], [1, 0, 1])
+        else:   # the input-volume row is n3dmap's default flow: the task's own window
+            assert (flow_config["refine_radius"], flow_config["refine_aggregate"]) == ([3, 1, 3], [1, 1, 1])
     assert metrics["config"]["task_options"] == TASK_OPTIONS
     for stage in ("pretrain_contrastive", "detector_contrastive_frozen_L2"):
         bundle = json.loads((out / "work" / "seed1" / stage / "bundle" / "bundle.json").read_text())
