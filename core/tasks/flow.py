@@ -63,8 +63,8 @@ class FlowTaskConfig:
     levels: int = 3
     radius: tuple[int, int, int] = (1, 1, 1)  # Flow3D.radius: cost-volume window (x, y, z) at every level
     # Flow3D.refine_radius: the grid step's window (None: radius) and Flow3D.refine_aggregate: the box its costs
-    # are averaged over (±x, y, z). Default ±3/±1/±3 with ±1 boxes, as the benchmark's feature flows have had since
-    # session 9. Why (session 36): the small report's input-volume flows, trained with a ±1 grid step, recovered
+    # are averaged over (±x, y, z). Default ±3/±1/±3 with ±1 boxes, the benchmark's feature-flow recipe (its
+    # `--task-options`). Why (session 36): the small report's input-volume flows, trained with a ±1 grid step, recovered
     # 0.09 of the motion of objects moving > 2.5 voxels a step (tests/benchmarks/bench_flow_magnitude.py); the same
     # trained modules with this window at inference (the step has no weights that depend on it) went from
     # AP3D@0.5 0.30 / 0.35 / 0.41 to 0.93 / 0.89 / 0.85 (static camera) and 0.27 / 0.30 / 0.41 to 0.84 / 0.82 /
