@@ -70,19 +70,26 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_new_bundle_dir(out) -> None:
+    """--out of a command that writes a bundle: creatable, and not already holding one (never overwritten)."""
+    from core.bundle import BUNDLE_JSON
+    from services.cli.errors import CliError
+
+    check_creatable_dir(out, "--out")
+    if (out / BUNDLE_JSON).exists():
+        raise CliError(f"--out {out} already holds a bundle; write into a new directory (nothing was written)")
+
+
 def _merge(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from core.bundle import (BUNDLE_JSON, foreign_mapper_readers, load_bundle, merge_bundles, parent_provenance,
-                             save_bundle)
+    from core.bundle import foreign_mapper_readers, load_bundle, merge_bundles, parent_provenance, save_bundle
     from services.cli.errors import CliError
     from services.training.job import git_commit
 
     paths = [Path(b) for b in args.bundles]
     out = Path(args.out)
-    check_creatable_dir(out, "--out")
-    if (out / BUNDLE_JSON).exists():
-        raise CliError(f"--out {out} already holds a bundle; merge into a new directory (nothing was written)")
+    _check_new_bundle_dir(out)
     if any(out.resolve() == p.resolve() for p in paths):
         raise CliError(f"--out {out} is one of the bundles being merged; merge into a new directory")
     take: dict[str, int] = {}
@@ -117,17 +124,13 @@ def _flow_window(args: argparse.Namespace) -> int:
     the small report's ±1-trained input-volume flows (docs/findings.md, "The wide step is now the default")."""
     from pathlib import Path
 
-    from core.bundle import BUNDLE_JSON, load_bundle, parent_provenance, save_bundle
+    from core.bundle import load_bundle, parent_provenance, save_bundle
     from core.models.flow3d import Flow3D
     from services.cli.errors import CliError
     from services.training.job import git_commit
 
     source, out = Path(args.bundle), Path(args.out)
-    check_creatable_dir(out, "--out")
-    if (out / BUNDLE_JSON).exists():
-        raise CliError(f"--out {out} already holds a bundle; write into a new directory (nothing was written)")
-    if out.resolve() == source.resolve():
-        raise CliError(f"--out {out} is the bundle itself; write into a new directory")
+    _check_new_bundle_dir(out)   # also refuses --out B itself: B holds a bundle
     bundle = load_bundle(source, "cpu")
     if "flow" not in bundle.modules:
         raise CliError(f"{source} has no flow module (modules: {', '.join(sorted(bundle.modules))})")
@@ -151,8 +154,7 @@ def _flow_window(args: argparse.Namespace) -> int:
                   "parents": [parent_provenance(bundle)]}
     save_bundle(out, modules={**bundle.modules, "flow": new}, preset=bundle.preset, provenance=provenance,
                 metrics=bundle.meta.get("metrics", {}))
-    before = old.config()
-    print(f"wrote {out}: flow grid step {before['refine_radius']} (cost box {before['refine_aggregate']}) -> "
+    print(f"wrote {out}: flow grid step {list(old.refine_radius)} (cost box {list(old.refine_aggregate)}) -> "
           f"{config['refine_radius']} (cost box {config['refine_aggregate']}); every other module as in {source}")
     return 0
 

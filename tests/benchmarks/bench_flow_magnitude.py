@@ -74,11 +74,12 @@ def moving_voxel_flows(bundle, records, passes: int) -> list[dict[str, torch.Ten
         gt = gt_flow(record, 0, bundle.preset.grid)[None]                          # 1×3×Z×Y×X
         occupied = gt_occupancy(record, 0, bundle.preset.grid)[None, 0] > 0.5     # 1×Z×Y×X
         mask = (gt.norm(dim=1) > 1e-3) & occupied                                  # 1×Z×Y×X
+        gt_moving = gt.permute(0, 2, 3, 4, 1)[mask]                               # N×3, the same every pass
         flow = est["flow_raw"].float()                                             # 1×3×Z×Y×X
         for k in range(passes):
             if k:
                 flow = flow + net(est["features0"], warp_flow(est["features1"], flow))["flow"].float()
-            out[k]["gt"].append(gt.permute(0, 2, 3, 4, 1)[mask])                   # N×3
+            out[k]["gt"].append(gt_moving)
             out[k]["pred"].append(flow.permute(0, 2, 3, 4, 1)[mask])               # N×3
     return [{key: torch.cat(v) for key, v in o.items()} for o in out]
 
